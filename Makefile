@@ -1,0 +1,32 @@
+# Two commands set up a fresh machine: `make demo` and `make test`.
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+
+export MUJOCO_GL ?= egl
+export OMP_NUM_THREADS ?= 1
+
+.PHONY: demo test bench install clean
+
+install: $(STAMP)
+
+# torch first, pinned to the CPU build, so resolving the package pulls no CUDA build.
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet torch==2.13.0
+	$(PY) -m pip install --quiet -e '.[test]'
+	touch $(STAMP)
+
+demo: $(STAMP)
+	$(PY) -m torchrl_brsl.demo
+
+test: $(STAMP)
+	$(PY) -m pytest -q
+
+bench: $(STAMP)
+	$(PY) benchmarks/bench_reach_collision.py
+
+clean:
+	rm -rf $(VENV) runs .pytest_cache

@@ -1,0 +1,1 @@
+"""Black-box Reachability-based Safety Layer for TorchRL."""
