@@ -1,0 +1,58 @@
+"""Order reduction of zonotope generator matrices with a fixed output width."""
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+
+def pad_generators(generators: Tensor, n_generators: int) -> Tensor:
+    """Append zero columns so ``generators`` has exactly ``n_generators`` columns.
+
+    Args:
+        generators: ``[..., n, p]`` with ``p <= n_generators``.
+        n_generators: the target column count.
+
+    Returns:
+        ``[..., n, n_generators]``.
+    """
+    p = generators.shape[-1]
+    if p > n_generators:
+        raise ValueError(f"`n_generators`={n_generators} is smaller than the {p} generators present")
+    if p == n_generators:
+        return generators
+    return torch.nn.functional.pad(generators, (0, n_generators - p))
+
+
+def reduce_girard(generators: Tensor, n_generators: int) -> Tensor:
+    """Girard's order reduction to exactly ``n_generators`` columns (zero-padded if fewer).
+
+    The ``p - n_generators + n`` generators with the smallest ``||g||_1 - ||g||_inf`` are
+    replaced by their interval hull ``diag(sum_j |g_j|)`` (``n`` columns); the others are
+    kept. The result's zonotope contains the input's (same centre). Batched and
+    differentiable.
+
+    Args:
+        generators: ``[..., n, p]``.
+        n_generators: target width, at least ``n``.
+
+    Returns:
+        ``[..., n, n_generators]``.
+
+    Examples:
+        >>> G = torch.randn(4, 2, 30)
+        >>> reduce_girard(G, 6).shape
+        torch.Size([4, 2, 6])
+    """
+    n, p = generators.shape[-2], generators.shape[-1]
+    if n_generators < n:
+        raise ValueError(f"`n_generators`={n_generators} must be at least the dimension n={n}")
+    if p <= n_generators:
+        return pad_generators(generators, n_generators)
+    n_keep = n_generators - n
+    score = generators.abs().sum(-2) - generators.abs().amax(-2)
+    order = score.argsort(dim=-1, descending=True)
+    idx = order.unsqueeze(-2).expand(*generators.shape[:-1], p)
+    sorted_gens = generators.gather(-1, idx)
+    kept, boxed = sorted_gens[..., :n_keep], sorted_gens[..., n_keep:]
+    box = torch.diag_embed(boxed.abs().sum(-1))
+    return torch.cat((kept, box), dim=-1)
