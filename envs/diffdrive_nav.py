@@ -1,0 +1,215 @@
+"""``diffdrive_nav``: a Turtlebot-3-like differential-drive robot navigating to a goal.
+
+* Robot: collision sphere of radius 0.11 m (the planar footprint is the disc of that
+  radius) on joints x, y, yaw; mass 1 kg, yaw inertia 0.01 kg m^2. The action
+  ``(v, ω) ∈ [0, 0.25] m/s × [-0.5, 0.5] rad/s`` is held for 0.1 s and tracked by
+  MuJoCo velocity servos at every 0.02 s physics step: body-frame forward speed
+  (time constant 50 ms, acceleration limit 0.5 m/s^2), yaw rate (50 ms, 2 rad/s^2)
+  and a stiff zero-lateral-speed servo standing in for wheel grip. Braking from
+  full speed takes 5-6 control steps.
+* State ``(x, y, cos θ, sin θ, v, ω)`` with ``v`` the body-frame forward speed;
+  process noise ``U[-0.005, 0.005]`` m/s on ``v`` and ``U[-0.01, 0.01]`` rad/s on ``ω``.
+* Observation (23): 18 lidar ranges over the front 180° divided by the 3.5 m range,
+  goal distance, cos/sin of the goal bearing in the robot frame, ``v``, ``ω``.
+* Layout: 5 m × 5 m arena (four walls), 4 random cylinders and 4 random yawed
+  boxes, a goal disc (radius 0.2 m) 1.2-2.0 m from the start at the centre,
+  random start heading. ``K = 12`` obstacles, ``p = 6`` generators.
+* Ends at the goal or a collision (``terminated``) or after 300 steps (``truncated``).
+* Empty variant: no walls or obstacles, random start speeds, truncated when
+  ``|x|`` or ``|y|`` exceeds 2.5 m.
+"""
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+from dm_control import mujoco as dm_mujoco
+from dm_control.rl import control
+
+from envs._lidar import Lidar, planar_fan
+from envs._mjcf import model_xml, with_actuators
+from envs._obstacles import KeepOut, Layout, Obstacle, boundary_walls, obstacle_bodies_xml, place_obstacles
+from envs._safety_info import SafetyInfo, zero_command
+from envs._task import GoalTask
+
+ARENA = 2.5
+MAX_SPEED = 0.25
+MAX_TURN_RATE = 0.5
+LIDAR_RANGE = 3.5
+N_LIDAR = 18
+GOAL_RADIUS = 0.2
+_HEIGHT = 0.4
+_ROBOT_Z = 0.15
+_WALL_THICKNESS = 0.2
+_N_CYLINDERS = 4
+_N_BOXES = 4
+_CYLINDER_RADIUS = (0.1, 0.25)
+_BOX_HALF_SIDE = (0.1, 0.3)
+
+
+def _walls() -> list[Obstacle]:
+    return boundary_walls(ARENA, _WALL_THICKNESS, _HEIGHT, _HEIGHT / 2)
+
+
+class DiffDriveNav(GoalTask):
+    """The dm_control task of ``diffdrive_nav`` (see the module docstring).
+
+    Examples:
+        >>> env = build_environment(seed=0)
+        >>> env.reset().observation["observation"].shape
+        (23,)
+    """
+
+    name = "diffdrive_nav"
+    layout_code = 2
+    obstacle_dim = 2
+    capacity = 4 + _N_CYLINDERS + _N_BOXES
+    robot_radius = 0.11
+    observation_dim = N_LIDAR + 5
+    action_low = np.array([0.0, -MAX_TURN_RATE])
+    action_high = np.array([MAX_SPEED, MAX_TURN_RATE])
+    noise_center = np.zeros(6)
+    noise_generators = np.array([[0, 0], [0, 0], [0, 0], [0, 0], [0.005, 0], [0, 0.01]], dtype=np.float64)
+    position_dims = (0, 1)
+    velocity_dims = (4, 5)
+    obstacle_kinds = ("box",) * 4 + ("cylinder",) * _N_CYLINDERS + ("box",) * _N_BOXES
+    progress_scale = 10.0
+
+    def _bind(self, physics) -> None:
+        self._lidar = Lidar(planar_fan(N_LIDAR, np.pi), LIDAR_RANGE, physics.model.name2id("robot", "body"))
+
+    def _draw_obstacle(self, rng, kind: str) -> Obstacle:
+        pos = np.array([*rng.uniform(-ARENA + 0.3, ARENA - 0.3, 2), _HEIGHT / 2])
+        if kind == "cylinder":
+            radius = rng.uniform(*_CYLINDER_RADIUS)
+            return Obstacle("cylinder", pos, np.array([radius, radius, _HEIGHT / 2]))
+        half = rng.uniform(*_BOX_HALF_SIDE, 2)
+        return Obstacle("box", pos, np.array([*half, _HEIGHT / 2]), yaw=rng.uniform(0, np.pi))
+
+    def _new_layout(self, rng):
+        angle, distance = rng.uniform(0, 2 * np.pi), rng.uniform(1.2, 2.0)
+        goal = distance * np.array([np.cos(angle), np.sin(angle)])
+        self._heading = rng.uniform(-np.pi, np.pi)
+        obstacles = []
+        if not self.empty:
+            keep_out = [
+                KeepOut(np.zeros(2), clearance=self.robot_radius + 0.4),
+                KeepOut(goal, clearance=GOAL_RADIUS + self.robot_radius + 0.15),
+            ]
+            obstacles = _walls() + place_obstacles(rng, self._draw_obstacle, self.obstacle_kinds[4:], keep_out)
+        center, generators, mask = self._layout_zonotopes(obstacles)
+        half = ARENA + _WALL_THICKNESS
+        return Layout(
+            obstacles=tuple(obstacles),
+            obstacle_center=center,
+            obstacle_generators=generators,
+            obstacle_mask=mask,
+            goals=goal[None],
+            goal_radius=GOAL_RADIUS,
+            start=np.zeros(2),
+            extent=(-half, half, -half, half),
+        )
+
+    def _reset_robot(self, physics, rng) -> None:
+        physics.data.qpos[:] = [0.0, 0.0, self._heading]
+        if self.empty:
+            speed = self.random.uniform(0.0, MAX_SPEED)
+            physics.data.qvel[:] = [speed * np.cos(self._heading), speed * np.sin(self._heading), 0.0]
+            physics.data.qvel[2] = self.random.uniform(-MAX_TURN_RATE, MAX_TURN_RATE)
+
+    def _apply_action(self, action, physics) -> None:
+        physics.data.ctrl[:] = [action[0], 0.0, action[1]]
+
+    def _add_state_noise(self, physics, noise) -> None:
+        heading = physics.data.qpos[2]
+        physics.data.qvel[:2] += noise[4] * np.array([np.cos(heading), np.sin(heading)])
+        physics.data.qvel[2] += noise[5]
+
+    def position(self, physics):
+        return physics.data.qpos[:2].copy()
+
+    def state(self, physics):
+        x, y, heading = physics.data.qpos
+        vx, vy, turn_rate = physics.data.qvel
+        cos, sin = np.cos(heading), np.sin(heading)
+        return np.array([x, y, cos, sin, cos * vx + sin * vy, turn_rate])
+
+    def _agent_observation(self, physics):
+        x, y, heading = physics.data.qpos
+        ranges = self._lidar.scan(physics, np.array([x, y, _ROBOT_Z]), heading)
+        offset = self.current_goal() - np.array([x, y])
+        bearing = np.arctan2(offset[1], offset[0]) - heading
+        state = self.state(physics)
+        return np.concatenate(
+            [ranges / LIDAR_RANGE, [np.linalg.norm(offset), np.cos(bearing), np.sin(bearing)], state[4:]]
+        )
+
+    def _speed(self, physics) -> float:
+        return float(np.linalg.norm(physics.data.qvel[:2]))
+
+    def _in_data_region(self, physics) -> bool:
+        return bool(np.all(np.abs(physics.data.qpos[:2]) <= ARENA))
+
+
+def _model(empty: bool) -> str:
+    robot = f"""
+    <body name="robot" pos="0 0 {_ROBOT_Z}">
+      <joint name="x" type="slide" axis="1 0 0"/>
+      <joint name="y" type="slide" axis="0 1 0"/>
+      <joint name="yaw" type="hinge" axis="0 0 1"/>
+      <inertial pos="0 0 0" mass="1" diaginertia="0.01 0.01 0.01"/>
+      <geom name="robot" class="robot" type="sphere" size="{DiffDriveNav.robot_radius}"/>
+      <geom class="visual" type="cylinder" size="0.09 0.07" pos="-0.02 0 -0.02" rgba=".15 .15 .17 1"/>
+      <geom class="visual" type="cylinder" size="0.033 0.009" pos="0 0.08 -0.117" euler="1.5708 0 0" rgba=".1 .1 .1 1"/>
+      <geom class="visual" type="cylinder" size="0.033 0.009" pos="0 -0.08 -0.117" euler="1.5708 0 0" rgba=".1 .1 .1 1"/>
+      <geom class="visual" type="cylinder" size="0.035 0.02" pos="0 0 0.07" rgba=".2 .2 .2 1"/>
+      <geom class="visual" type="box" size="0.03 0.01 0.005" pos="0.06 0 0.055" rgba=".9 .3 .2 1"/>
+      <site name="base"/>
+      <camera name="follow" mode="trackcom" pos="0 -1.5 2" xyaxes="1 0 0 0 0.8 0.6"/>
+    </body>"""
+    walls = _walls()
+    max_half = [w.half_size for w in walls]
+    max_half += [[_CYLINDER_RADIUS[1], _CYLINDER_RADIUS[1], _HEIGHT / 2]] * _N_CYLINDERS
+    max_half += [[_BOX_HALF_SIDE[1], _BOX_HALF_SIDE[1], _HEIGHT / 2]] * _N_BOXES
+    obstacles = "" if empty else obstacle_bodies_xml(DiffDriveNav.obstacle_kinds, max_half)
+    xml = model_xml("diffdrive_nav", 0.02, robot, obstacles, floor_half_extent=3.0, overview_height=5.0)
+    return with_actuators(
+        xml,
+        """    <velocity name="forward" site="base" gear="1 0 0 0 0 0" kv="20" forcelimited="true" forcerange="-0.5 0.5"/>
+    <velocity name="lateral" site="base" gear="0 1 0 0 0 0" kv="100" forcelimited="true" forcerange="-5 5"/>
+    <velocity name="turn" joint="yaw" kv="0.2" forcelimited="true" forcerange="-0.02 0.02"/>""",
+    )
+
+
+def build_environment(
+    *, empty: bool = False, layout: int | None = None, seed=None, episode_steps: int = 300, terminate_on_collision: bool = True
+) -> control.Environment:
+    """The dm_control environment of ``diffdrive_nav``.
+
+    Args:
+        empty: the obstacle-free variant for offline data collection.
+        layout: fixed evaluation layout index, or None for a random layout per episode.
+        seed: seed of the task's random state.
+        episode_steps: time limit in steps of 0.1 s.
+        terminate_on_collision: end the episode on a collision.
+
+    Returns:
+        A ``dm_control.rl.control.Environment``.
+
+    Examples:
+        >>> env = build_environment(layout=0)
+        >>> env.reset().observation["obstacles_mask"].sum()
+        12
+    """
+    physics = dm_mujoco.Physics.from_xml_string(_model(empty))
+    task = DiffDriveNav(
+        empty=empty, layout=layout, episode_steps=episode_steps, terminate_on_collision=terminate_on_collision, random=seed
+    )
+    return control.Environment(physics, task, time_limit=(episode_steps - 0.5) * task.dt, n_sub_steps=5)
+
+
+def safety_info() -> SafetyInfo:
+    """The :class:`SafetyInfo` of ``diffdrive_nav``."""
+    return DiffDriveNav.safety_info(
+        n_brk=6, n_plan=8, braking_action=np.zeros(2), braking_policy=functools.partial(zero_command, action_dim=2), stop_tolerance=0.02
+    )

@@ -1,0 +1,165 @@
+"""``hexarotor_wind``: a velocity-commanded hexarotor in wind passing 10 checkpoints in order.
+
+* Robot: the multirotor of :mod:`envs._aerial` with mass 2 kg and a collision
+  sphere of radius 0.4 m; action = commanded velocity ``[-5, 5]^3`` m/s at 10 Hz.
+* Wind: constant horizontal wind per episode, speed ``U[0, 3]`` m/s in a uniformly
+  random direction, acting as the drag force ``0.5 kg/s * (wind - velocity)`` written
+  to ``xfrc_applied`` before every control step (also in the empty variant: offline
+  data is collected under wind). The wind is not observed.
+* State ``(x, y, z, vx, vy, vz)``; process noise ``U[-0.02, 0.02]`` m/s per velocity.
+* Checkpoints: 10 spheres of radius 1 m, equally spaced on the horizontal circle of
+  radius 6 m at height 2.5 m, visited counter-clockwise from ``(6, 0, 2.5)``; the
+  robot starts hovering at ``(0, 0, 2.5)``. Obstacles (4 pillars, 4 boxes) are placed
+  at random 1.8-3.5 m inside or outside the ring but clear of the straight legs
+  between consecutive checkpoints, so the high-reward path runs next to them. ``K = 14`` obstacles (6 boundary slabs first),
+  ``p = 7`` generators.
+* Observation (26): 16 lidar ranges / 10 m, offset to the current checkpoint (3),
+  offset from the current to the next checkpoint (3; zero at the last one),
+  velocity (3), fraction of checkpoints passed.
+* Reward: progress towards the current checkpoint + 10 per checkpoint - 10 on a
+  collision. Ends after the 10th checkpoint or a collision (``terminated``) or
+  after 400 steps (``truncated``).
+"""
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import numpy as np
+from dm_control import mujoco as dm_mujoco
+from dm_control.rl import control
+
+from envs._aerial import ARENA, N_BOUNDARY, AerialTask, aerial_model, boundary, draw_obstacle
+from envs._obstacles import KeepOut, Layout, Obstacle, place_obstacles
+from envs._safety_info import SafetyInfo, zero_command
+
+N_CHECKPOINTS = 10
+CHECKPOINT_RADIUS = 1.0
+RING_RADIUS = 6.0
+RING_HEIGHT = 2.5
+MAX_WIND = 3.0
+DRAG = 0.5
+_N_PILLARS = 4
+_N_BOXES = 4
+
+
+def _draw_near_ring(rng: np.random.RandomState, kind: str) -> Obstacle:
+    """A random obstacle 1.8-3.5 m inside or outside the checkpoint ring."""
+    obstacle = draw_obstacle(rng, kind)
+    angle = rng.uniform(0, 2 * np.pi)
+    radius = RING_RADIUS + rng.choice([-1.0, 1.0]) * rng.uniform(1.8, 3.5)
+    return dataclasses.replace(obstacle, pos=np.array([radius * np.cos(angle), radius * np.sin(angle), obstacle.pos[2]]))
+
+
+def checkpoints() -> np.ndarray:
+    """The 10 checkpoint centres ``[10, 3]`` in visiting order."""
+    angles = np.arange(N_CHECKPOINTS) * 2 * np.pi / N_CHECKPOINTS
+    return np.stack([RING_RADIUS * np.cos(angles), RING_RADIUS * np.sin(angles), np.full(N_CHECKPOINTS, RING_HEIGHT)], 1)
+
+
+class HexarotorWind(AerialTask):
+    """The dm_control task of ``hexarotor_wind`` (see the module docstring).
+
+    Attributes:
+        wind: the current episode's wind velocity ``[3]`` (m/s).
+
+    Examples:
+        >>> env = build_environment(seed=0)
+        >>> env.reset().observation["observation"].shape
+        (26,)
+    """
+
+    name = "hexarotor_wind"
+    layout_code = 4
+    capacity = N_BOUNDARY + _N_PILLARS + _N_BOXES
+    robot_radius = 0.4
+    observation_dim = 16 + 3 + 3 + 3 + 1
+    obstacle_kinds = ("box",) * N_BOUNDARY + ("cylinder",) * _N_PILLARS + ("box",) * _N_BOXES
+    start = np.array([0.0, 0.0, RING_HEIGHT])
+
+    def _new_layout(self, rng):
+        goals = checkpoints()
+        speed, direction = rng.uniform(0.0, MAX_WIND), rng.uniform(0, 2 * np.pi)
+        self.wind = np.array([speed * np.cos(direction), speed * np.sin(direction), 0.0])
+        obstacles = []
+        if not self.empty:
+            legs = [self.start, *goals]
+            clearance = self.robot_radius + 0.6
+            keep_out = [KeepOut(a, b, clearance) for a, b in zip(legs[:-1], legs[1:])]
+            keep_out += [KeepOut(goal, clearance=CHECKPOINT_RADIUS + self.robot_radius + 0.3) for goal in goals]
+            obstacles = boundary() + place_obstacles(rng, _draw_near_ring, self.obstacle_kinds[N_BOUNDARY:], keep_out)
+        center, generators, mask = self._layout_zonotopes(obstacles)
+        half = ARENA + 0.5
+        return Layout(
+            obstacles=tuple(obstacles),
+            obstacle_center=center,
+            obstacle_generators=generators,
+            obstacle_mask=mask,
+            goals=goals,
+            goal_radius=CHECKPOINT_RADIUS,
+            start=self.start.copy(),
+            extent=(-half, half, -half, half),
+        )
+
+    def _apply_action(self, action, physics) -> None:
+        super()._apply_action(action, physics)
+        physics.data.xfrc_applied[self._body, :3] = DRAG * (self.wind - physics.data.qvel[:3])
+
+    def _agent_observation(self, physics):
+        goals = self.layout.goals
+        index = min(self.goal_index, N_CHECKPOINTS - 1)
+        following = goals[index + 1] - goals[index] if index + 1 < N_CHECKPOINTS else np.zeros(3)
+        position = physics.data.qpos[:3]
+        return np.concatenate(
+            [
+                self._lidar_scan(physics),
+                goals[index] - position,
+                following,
+                physics.data.qvel[:3],
+                [self.goal_index / N_CHECKPOINTS],
+            ]
+        )
+
+
+def build_environment(
+    *, empty: bool = False, layout: int | None = None, seed=None, episode_steps: int = 400, terminate_on_collision: bool = True
+) -> control.Environment:
+    """The dm_control environment of ``hexarotor_wind``.
+
+    Args:
+        empty: the obstacle-free variant for offline data collection (wind stays).
+        layout: fixed evaluation layout index (obstacles and wind), or None.
+        seed: seed of the task's random state.
+        episode_steps: time limit in steps of 0.1 s.
+        terminate_on_collision: end the episode on a collision.
+
+    Returns:
+        A ``dm_control.rl.control.Environment``.
+
+    Examples:
+        >>> env = build_environment(layout=3)
+        >>> env.reset().observation["obstacles_center"].shape
+        (14, 3)
+    """
+    xml = aerial_model("hexarotor_wind", empty, _N_PILLARS, _N_BOXES, HexarotorWind.robot_radius, mass=2.0, n_rotors=6)
+    task = HexarotorWind(
+        empty=empty, layout=layout, episode_steps=episode_steps, terminate_on_collision=terminate_on_collision, random=seed
+    )
+    return control.Environment(
+        dm_mujoco.Physics.from_xml_string(xml), task, time_limit=(episode_steps - 0.5) * task.dt, n_sub_steps=5
+    )
+
+
+def safety_info() -> SafetyInfo:
+    """The :class:`SafetyInfo` of ``hexarotor_wind``.
+
+    The zero command leaves a residual drift of at most
+    ``DRAG * MAX_WIND / (servo gain + DRAG) ≈ 0.04`` m/s, hence the looser tolerance.
+    """
+    return HexarotorWind.safety_info(
+        n_brk=10,
+        n_plan=11,
+        braking_action=np.zeros(3),
+        braking_policy=functools.partial(zero_command, action_dim=3),
+        stop_tolerance=0.1,
+    )

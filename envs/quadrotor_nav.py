@@ -1,0 +1,112 @@
+"""``quadrotor_nav``: a velocity-commanded quadrotor navigating to a goal in 3-D.
+
+* Robot: the multirotor of :mod:`envs._aerial` with mass 1 kg and a collision
+  sphere of radius 0.3 m; action = commanded velocity ``[-5, 5]^3`` m/s at 10 Hz.
+* State ``(x, y, z, vx, vy, vz)``; process noise ``U[-0.02, 0.02]`` m/s per velocity.
+* Observation (22): 16 lidar ranges (2 rings of 8 at ±25° elevation, i.e. a 50°
+  vertical and 360° horizontal field of view, world-aligned) divided by the 10 m
+  range, goal offset ``goal - position`` (3), velocity (3).
+* Layout: the arena of :mod:`envs._aerial` with 6 random pillars and 6 random
+  boxes; start hovering at ``(0, 0, 2)``; a goal sphere of radius 0.75 m, 5-8.5 m
+  away horizontally at height 1-5 m. ``K = 18`` obstacles (6 boundary slabs
+  first), ``p = 7`` generators.
+* Ends at the goal or a collision (``terminated``) or after 200 steps (``truncated``).
+* Empty variant: no obstacles (not even the floor), random start velocity, truncated
+  outside ``|x|, |y| ≤ 10, -4 ≤ z ≤ 8``.
+"""
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+from dm_control import mujoco as dm_mujoco
+from dm_control.rl import control
+
+from envs._aerial import ARENA, N_BOUNDARY, AerialTask, aerial_model, boundary, draw_obstacle
+from envs._obstacles import KeepOut, Layout, place_obstacles
+from envs._safety_info import SafetyInfo, zero_command
+
+GOAL_RADIUS = 0.75
+_N_PILLARS = 6
+_N_BOXES = 6
+
+
+class QuadrotorNav(AerialTask):
+    """The dm_control task of ``quadrotor_nav`` (see the module docstring).
+
+    Examples:
+        >>> env = build_environment(seed=0)
+        >>> env.reset().observation["obstacles_generators"].shape
+        (18, 3, 7)
+    """
+
+    name = "quadrotor_nav"
+    layout_code = 3
+    capacity = N_BOUNDARY + _N_PILLARS + _N_BOXES
+    robot_radius = 0.3
+    observation_dim = 16 + 3 + 3
+    obstacle_kinds = ("box",) * N_BOUNDARY + ("cylinder",) * _N_PILLARS + ("box",) * _N_BOXES
+
+    def _new_layout(self, rng):
+        angle, distance = rng.uniform(0, 2 * np.pi), rng.uniform(5.0, 8.5)
+        goal = np.array([distance * np.cos(angle), distance * np.sin(angle), rng.uniform(1.0, 5.0)])
+        obstacles = []
+        if not self.empty:
+            keep_out = [
+                KeepOut(self.start, clearance=self.robot_radius + 1.0),
+                KeepOut(goal, clearance=GOAL_RADIUS + self.robot_radius + 0.3),
+            ]
+            obstacles = boundary() + place_obstacles(rng, draw_obstacle, self.obstacle_kinds[N_BOUNDARY:], keep_out)
+        center, generators, mask = self._layout_zonotopes(obstacles)
+        half = ARENA + 0.5
+        return Layout(
+            obstacles=tuple(obstacles),
+            obstacle_center=center,
+            obstacle_generators=generators,
+            obstacle_mask=mask,
+            goals=goal[None],
+            goal_radius=GOAL_RADIUS,
+            start=self.start.copy(),
+            extent=(-half, half, -half, half),
+        )
+
+    def _agent_observation(self, physics):
+        return np.concatenate(
+            [self._lidar_scan(physics), self.current_goal() - physics.data.qpos[:3], physics.data.qvel[:3]]
+        )
+
+
+def build_environment(
+    *, empty: bool = False, layout: int | None = None, seed=None, episode_steps: int = 200, terminate_on_collision: bool = True
+) -> control.Environment:
+    """The dm_control environment of ``quadrotor_nav``.
+
+    Args:
+        empty: the obstacle-free variant for offline data collection.
+        layout: fixed evaluation layout index, or None for a random layout per episode.
+        seed: seed of the task's random state.
+        episode_steps: time limit in steps of 0.1 s.
+        terminate_on_collision: end the episode on a collision.
+
+    Returns:
+        A ``dm_control.rl.control.Environment``.
+
+    Examples:
+        >>> env = build_environment(empty=True, seed=0)
+        >>> bool(env.reset().observation["obstacles_mask"].any())
+        False
+    """
+    xml = aerial_model("quadrotor_nav", empty, _N_PILLARS, _N_BOXES, QuadrotorNav.robot_radius, mass=1.0, n_rotors=4)
+    task = QuadrotorNav(
+        empty=empty, layout=layout, episode_steps=episode_steps, terminate_on_collision=terminate_on_collision, random=seed
+    )
+    return control.Environment(
+        dm_mujoco.Physics.from_xml_string(xml), task, time_limit=(episode_steps - 0.5) * task.dt, n_sub_steps=5
+    )
+
+
+def safety_info() -> SafetyInfo:
+    """The :class:`SafetyInfo` of ``quadrotor_nav``."""
+    return QuadrotorNav.safety_info(
+        n_brk=10, n_plan=11, braking_action=np.zeros(3), braking_policy=functools.partial(zero_command, action_dim=3), stop_tolerance=0.05
+    )

@@ -1,0 +1,110 @@
+"""Specs, keys, shapes and the SafetyInfo of every task."""
+import pytest
+import torch
+from torchrl.envs.utils import check_env_specs
+
+import envs
+from envs._obstacles import GENERATORS_PER_OBSTACLE
+
+torch.set_num_threads(1)
+
+CAPACITY = {"point_circle": 4, "diffdrive_nav": 12, "quadrotor_nav": 18, "hexarotor_wind": 14}
+OBSERVATION_DIM = {"point_circle": 5, "diffdrive_nav": 23, "quadrotor_nav": 22, "hexarotor_wind": 26}
+
+
+@pytest.mark.parametrize("empty", [False, True])
+@pytest.mark.parametrize("name", envs.TASKS)
+def test_check_env_specs(name, empty):
+    check_env_specs(envs.make(name, seed=0, empty=empty))
+
+
+@pytest.mark.parametrize("name", envs.TASKS)
+def test_keys_shapes_and_dtypes(name):
+    info = envs.safety_info(name)
+    env = envs.make(name, seed=0)
+    k, d = CAPACITY[name], info.obstacle_dim
+    td = env.rollout(4, policy=lambda td: td.set("action", info.braking_policy(td["state"])))
+    step = td[-1]["next"]
+    expected = {
+        "observation": ((OBSERVATION_DIM[name],), torch.float32),
+        "state": ((info.state_dim,), torch.float32),
+        ("obstacles", "center"): ((k, d), torch.float32),
+        ("obstacles", "generators"): ((k, d, GENERATORS_PER_OBSTACLE[d]), torch.float32),
+        ("obstacles", "mask"): ((k,), torch.bool),
+        "collision": ((1,), torch.bool),
+        "goal_reached": ((1,), torch.bool),
+        "speed": ((1,), torch.float32),
+        "reward": ((1,), torch.float32),
+        "done": ((1,), torch.bool),
+        "terminated": ((1,), torch.bool),
+        "truncated": ((1,), torch.bool),
+    }
+    for key, (shape, dtype) in expected.items():
+        assert step[key].shape == shape, key
+        assert step[key].dtype == dtype, key
+    assert td["action"].shape == (4, info.action_dim)
+    mask = step["obstacles", "mask"]
+    assert mask.any()
+    assert (step["obstacles", "center"][~mask] == 0).all()
+    assert (step["obstacles", "generators"][~mask] == 0).all()
+    # real obstacles have no zero generator (facet normals stay defined)
+    assert (step["obstacles", "generators"][mask].norm(dim=-2) > 0).all()
+
+
+@pytest.mark.parametrize("name", envs.TASKS)
+def test_empty_variant_has_no_obstacles(name):
+    td = envs.make(name, seed=0, empty=True).rollout(3)
+    assert not td["next", "obstacles", "mask"].any()
+    assert (td["next", "obstacles", "generators"] == 0).all()
+
+
+@pytest.mark.parametrize("name", envs.TASKS)
+def test_safety_info_is_consistent_with_the_env(name):
+    info = envs.safety_info(name)
+    env = envs.make(name, seed=0)
+    assert torch.equal(env.action_spec.space.low, info.action_low)
+    assert torch.equal(env.action_spec.space.high, info.action_high)
+    assert info.position_dims == tuple(range(info.obstacle_dim))
+    assert not set(info.position_dims) & set(info.velocity_dims)
+    assert info.noise_center.shape == (info.state_dim,)
+    assert info.noise_generators.shape[0] == info.state_dim
+    assert (info.noise_generators[list(info.position_dims)] == 0).all()
+    assert info.n_plan > info.n_brk > 0
+    assert info.dt == pytest.approx(0.1)
+    assert ((info.braking_action >= info.action_low) & (info.braking_action <= info.action_high)).all()
+    states = torch.randn(5, 3, info.state_dim)
+    actions = info.braking_policy(states)
+    assert actions.shape == (5, 3, info.action_dim)
+    assert ((actions >= info.action_low) & (actions <= info.action_high)).all()
+    assert info.is_stopped(torch.zeros(info.state_dim))
+    moving = torch.zeros(info.state_dim)
+    moving[info.velocity_dims[0]] = 2 * info.stop_tolerance
+    assert not info.is_stopped(moving)
+
+
+def test_point_braking_policy_values():
+    info = envs.safety_info("point_circle")
+    state = torch.tensor([[0.3, -0.2, 0.05, -2.0], [0.0, 0.0, 1.0, 0.02]])
+    expected = torch.tensor([[-0.5, 1.0], [-1.0, -0.2]])
+    assert torch.allclose(info.braking_policy(state), expected)
+
+
+def test_unknown_task_raises():
+    with pytest.raises(ValueError, match="unknown task"):
+        envs.make("cartpole")
+    with pytest.raises(ValueError, match="unknown task"):
+        envs.safety_info("cartpole")
+
+
+@pytest.mark.parametrize("name", envs.TASKS)
+def test_observation_entries_are_copies(name):
+    """Editing an output in place must not leak into the next step's output."""
+    env = envs.make(name, seed=0)
+    td = env.reset()
+    center = td["obstacles", "center"].clone()
+    mask = td["obstacles", "mask"].clone()
+    td["obstacles", "center"].add_(1.0)
+    td["obstacles", "mask"].logical_not_()
+    td = env.step(td.set("action", envs.safety_info(name).braking_action))
+    assert torch.equal(td["next", "obstacles", "center"], center)
+    assert torch.equal(td["next", "obstacles", "mask"], mask)
