@@ -35,7 +35,7 @@ def model_xml(
     return f"""
 <mujoco model="{name}">
   <compiler angle="radian"/>
-  <option timestep="{timestep}" integrator="implicitfast" gravity="0 0 -9.81"/>
+  <option timestep="{timestep}" integrator="Euler" gravity="0 0 -9.81"/>
   <visual>
     <global offwidth="1280" offheight="960"/>
     <quality shadowsize="0"/>

@@ -44,7 +44,7 @@ class SafetyInfo:
         >>> import envs
         >>> info = envs.safety_info("point_circle")
         >>> info.state_dim, info.position_dims, info.n_brk
-        (4, (0, 1), 20)
+        (4, (0, 1), 23)
         >>> info.braking_policy(torch.tensor([0.0, 0.0, 0.05, -2.0]))
         tensor([-0.5000,  1.0000])
     """

@@ -72,6 +72,7 @@ class SafetyTask(base.Task):
         self._robot_geoms: np.ndarray | None = None
         self._collision = False
         self._goal_reached = False
+        self._first_step = True
         self._obstacle_arrays = zonotope_batch([], self.robot_radius, self.obstacle_dim, self.capacity)
 
     # ------------------------------------------------------------------ robot hooks
@@ -145,8 +146,14 @@ class SafetyTask(base.Task):
         self._reset_robot(physics, rng)
         physics.forward()
         self._collision = self._in_contact(physics)
+        self._first_step = True
 
     def before_step(self, action, physics):
+        if self._first_step:
+            # dm_control's after_reset runs mj_forward with actuation disabled, which
+            # leaves actuator velocities at 0; the velocity servos need them.
+            physics.forward()
+            self._first_step = False
         action = np.clip(np.asarray(action, dtype=np.float64), self.action_low, self.action_high)
         self._apply_action(action, physics)
 

@@ -176,7 +176,7 @@ def _model(empty: bool) -> str:
     return with_actuators(
         xml,
         """    <velocity name="forward" site="base" gear="1 0 0 0 0 0" kv="20" forcelimited="true" forcerange="-0.5 0.5"/>
-    <velocity name="lateral" site="base" gear="0 1 0 0 0 0" kv="100" forcelimited="true" forcerange="-5 5"/>
+    <velocity name="lateral" site="base" gear="0 1 0 0 0 0" kv="40" forcelimited="true" forcerange="-5 5"/>
     <velocity name="turn" joint="yaw" kv="0.2" forcelimited="true" forcerange="-0.02 0.02"/>""",
     )
 
