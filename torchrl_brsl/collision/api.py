@@ -29,8 +29,10 @@ the state space) is positive iff ``v* > 1``:
   ``Z(0, [G1, G2])``); for constrained zonotopes it is a scaled gauge without metric meaning.
 
 Failures never raise in :func:`check_collision`: non-finite data, an empty constrained
-zonotope, inconsistent constraints or a solver failure give ``value = 0`` and
-``clearance = 0`` (colliding) with a :class:`CollisionStatus` per pair. Malformed arguments
+zonotope, a constrained zonotope with inconsistent constraints or a solver failure give
+``value = 0`` and ``clearance = 0`` (colliding) with a :class:`CollisionStatus` per pair.
+Two non-empty sets whose intersection equations have no solution at all (e.g. parallel
+segments) are disjoint and get ``v* = inf``. Malformed arguments
 (types, dimensions, dtypes, batch shapes, backend names) raise ``ValueError`` naming the
 argument.
 """
@@ -215,6 +217,8 @@ def _lp(sets, obstacles, batch: torch.Size, with_clearance: bool, solver_args: d
     safe = [torch.where(finite.reshape(*batch, *[1] * (t.ndim - len(batch))), t, 0.0) for t in (*s, *o)]
     inter = ConstrainedZonotope(*safe[:4]).intersect(ConstrainedZonotope(*safe[4:]))
     value, lp_reason = solve_gauge(inter.A, inter.b, active=reason == CollisionStatus.OK, solver_args=solver_args)
+    # both sets are non-empty here, so equations without any solution mean disjoint sets: v* = inf
+    lp_reason = torch.where(lp_reason == CollisionStatus.INFEASIBLE, int(CollisionStatus.OK), lp_reason)
     reason = torch.where(reason == CollisionStatus.OK, lp_reason, reason)
     clear = None
     if with_clearance:

@@ -18,7 +18,7 @@ programs.
 
 Nothing here raises on bad numbers: every element gets a :class:`CollisionStatus`. Elements
 with NaN or infinite data and elements whose equality constraints have no solution at all
-(checked by least squares before solving) are not sent to the solver; a solver exception
+(checked by least squares before solving; ``v* = inf``) are not sent to the solver; a solver exception
 for the batch is retried element by element; every returned point is checked against the
 constraints and rejected (``SOLVER_FAILED``) if it violates them.
 """
@@ -89,8 +89,10 @@ def solve_gauge(A: Tensor, b: Tensor, active: Tensor | None = None, solver_args:
         solver_args: overrides of :data:`SOLVER_ARGS`.
 
     Returns:
-        ``(value, reason)``, each ``[...]``: ``v*`` in the dtype of ``A`` (0 where the reason
-        is not ``OK``) and ``torch.int8`` :class:`CollisionStatus` codes.
+        ``(value, reason)``, each ``[...]``: ``v*`` in the dtype of ``A`` and ``torch.int8``
+        :class:`CollisionStatus` codes. Where ``A z = b`` has no solution at all the value is
+        ``inf`` (the optimum of an infeasible minimisation) and the reason ``INFEASIBLE``;
+        the caller decides what that means. Other failures give value 0.
     """
     batch, (m, p) = A.shape[:-2], A.shape[-2:]
     if p == 0:  # a zero column leaves the program unchanged and gives cvxpy a variable
@@ -114,6 +116,7 @@ def solve_gauge(A: Tensor, b: Tensor, active: Tensor | None = None, solver_args:
         good = solved & torch.isfinite(v_) & _satisfies(sub_A, sub_b, z) & bounded
         value = value.index_put((idx,), torch.where(good, v, 0.0))
         reason = reason.index_put((idx,), torch.where(good, reason[idx], int(CollisionStatus.SOLVER_FAILED)))
+    value = torch.where(reason == CollisionStatus.INFEASIBLE, float("inf"), value)
     return value.to(A.dtype).reshape(batch), reason.reshape(batch)
 
 

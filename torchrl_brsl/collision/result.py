@@ -21,7 +21,7 @@ class CollisionStatus(IntEnum):
     EMPTY_SET = 2
     """A constrained zonotope is empty: its own constraints need ``||z||_inf > 1``."""
     INFEASIBLE = 3
-    """The equality constraints of the intersection program have no solution at all."""
+    """A constrained zonotope's own equality constraints ``A z = b`` have no solution at all."""
     SOLVER_FAILED = 4
     """The solver raised, or returned a point that fails the feasibility check."""
 
