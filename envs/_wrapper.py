@@ -1,6 +1,7 @@
 """TorchRL wrapper of the dm_control tasks: float32, nested ``obstacles``, bool flags."""
 from __future__ import annotations
 
+import mujoco
 import numpy as np
 import torch
 from torchrl.data import Bounded, Composite
@@ -113,12 +114,15 @@ class SafetyTaskEnv(DMControlWrapper):
             ``uint8`` array ``[height, width, 3]``.
 
         Raises:
+            ValueError: unknown camera.
             RenderingUnavailable: no OpenGL backend (set ``MUJOCO_GL=egl`` or
                 ``osmesa`` before importing ``envs``).
         """
-        if isinstance(camera, str):
-            self.physics.model.name2id(camera, "camera")  # a wrong name raises here, not below
+        model = self.physics.model
+        cameras = [model.id2name(i, "camera") for i in range(model.ncam)]
+        if camera not in cameras and camera not in range(-1, model.ncam):
+            raise ValueError(f"unknown camera {camera!r}; the model has {cameras}")
         try:
             return self.physics.render(height=height, width=width, camera_id=camera)
-        except (ImportError, RuntimeError, OSError, AttributeError) as error:
+        except (ImportError, RuntimeError, OSError, AttributeError, mujoco.FatalError) as error:
             raise RenderingUnavailable(f"MuJoCo rendering is unavailable: {error}") from error
