@@ -75,6 +75,12 @@ def test_auto_falls_back_to_lp_when_not_full_dimensional():
     assert clearance(sets, obstacles)[1] == pytest.approx(0.5, rel=1e-6)
     with pytest.raises(ValueError, match="backend"):
         collision_value(sets, obstacles, backend="closed_form")
+    # v* = inf must not turn into NaN gradients
+    g1 = sets.generators.clone().requires_grad_()
+    c1 = sets.center.clone().requires_grad_()
+    result = check_collision(Zonotope(c1, g1), obstacles)
+    grads = torch.autograd.grad(result.value.sum() + result.clearance.sum(), (c1, g1), allow_unused=True)
+    assert all(torch.isfinite(g).all() for g in grads if g is not None)
 
 
 @pytest.mark.parametrize("n", [2, 3])

@@ -230,7 +230,8 @@ def _lp(sets, obstacles, batch: torch.Size, with_clearance: bool, solver_args: d
         generators = torch.cat((safe[1], safe[5]), dim=-1)
         s_min = (torch.linalg.svdvals(generators)[..., -1] if generators.shape[-1] >= sets.dim
                  else torch.zeros_like(value))
-        clear = torch.where(disjoint, dist, (value - 1) * s_min)
+        inside = (torch.where(disjoint, 1.0, value) - 1) * s_min  # no inf * 0 in the backward of disjoint pairs
+        clear = torch.where(disjoint, dist, inside)
     ok = reason == CollisionStatus.OK
     value = torch.where(ok, value, 0.0)
     clear = torch.where(ok, clear, 0.0) if with_clearance else None
