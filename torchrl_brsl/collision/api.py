@@ -43,6 +43,7 @@ from torch import Tensor
 
 from torchrl_brsl.collision.closed_form import (
     CLOSED_FORM_DIMS,
+    _broadcast,
     facet_clearances,
     facet_table,
     finite_offsets,
@@ -174,11 +175,7 @@ def _validate(sets, obstacles, backend: str) -> torch.Size:
         raise ValueError(f"`obstacles` have dtype {obstacles.center.dtype} but `sets` have {sets.center.dtype}")
     if obstacles.center.device != sets.center.device:
         raise ValueError(f"`obstacles` are on {obstacles.center.device} but `sets` are on {sets.center.device}")
-    try:
-        return torch.broadcast_shapes(obstacles.batch_size, sets.batch_size)
-    except RuntimeError as err:
-        raise ValueError(f"`obstacles` have batch shape {tuple(obstacles.batch_size)}, which does not broadcast "
-                         f"with the batch shape {tuple(sets.batch_size)} of `sets`") from err
+    return _broadcast("obstacles", obstacles.batch_size, sets.batch_size)
 
 
 def _closed_form(sets: Zonotope, obstacles: Zonotope, batch: torch.Size, with_clearance: bool, required: bool

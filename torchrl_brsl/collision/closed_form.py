@@ -66,6 +66,13 @@ def facet_table(generators: Tensor, deduplicate: bool = False) -> FacetTable:
     Returns:
         A :class:`FacetTable` with ``K = 1`` (n = 1), ``p`` (n = 2) or ``p (p - 1) / 2``
         (n = 3) rows, fewer after deduplication.
+
+    Examples:
+        >>> G = torch.tensor([[1.0, 0.0, 2.0, 0.0], [0.0, 1.0, 0.0, 0.0]])  # parallel and zero columns
+        >>> facet_table(G).weights.shape, facet_table(G, deduplicate=True).weights.shape
+        (torch.Size([4, 2]), torch.Size([2, 2]))
+        >>> gauge_values(torch.tensor([6.0, 0.5]), facet_table(G))  # Z(0, G) = [-3, 3] x [-1, 1]
+        tensor(2.)
     """
     h = facet_normals(generators)  # [..., K, n]
     sigma = facet_supports(h, generators)  # [..., K]
@@ -99,6 +106,10 @@ def is_full_dimensional(generators: Tensor) -> Tensor:
 
     Args:
         generators: ``[..., n, p]``.
+
+    Examples:
+        >>> is_full_dimensional(torch.tensor([[[1.0, 1.0], [0.0, 1.0]], [[1.0, 2.0], [1.0, 2.0]]]))
+        tensor([ True, False])
     """
     if generators.shape[-1] < generators.shape[-2]:
         return torch.zeros(generators.shape[:-2], dtype=torch.bool, device=generators.device)
@@ -241,6 +252,7 @@ def _parallel_to_earlier(normals: Tensor, valid: Tensor) -> Tensor:
 
 
 def _broadcast(name: str, shape, batch) -> torch.Size:
+    """``broadcast_shapes(shape, batch)`` or a ``ValueError`` naming the argument ``name``."""
     try:
         return torch.broadcast_shapes(torch.Size(shape), torch.Size(batch))
     except RuntimeError as err:

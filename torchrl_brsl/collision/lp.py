@@ -8,8 +8,9 @@ Two convex programs, each compiled once per problem size and cached:
 * the distance SOCP ``min ||G z - d||_2 s.t. A z = b, ||z||_inf <= 1``
   (:func:`solve_distance`): the Euclidean distance between two constrained zonotopes.
 
-Both run in float64 with Clarabel through diffcp, one problem after another on one thread
-(:data:`SOLVER_ARGS`), and are differentiated by diffcp's implicit differentiation of the
+Both run on the CPU in float64 (results come back on the inputs' device and dtype) with
+Clarabel through diffcp, one problem after another on one thread (:data:`SOLVER_ARGS`),
+and are differentiated by diffcp's implicit differentiation of the
 solution map. That derivative is the true gradient wherever the primal and dual solutions
 are unique; at degenerate points (ties between active constraints, e.g. exactly symmetric
 configurations) the value is only directionally differentiable and diffcp returns one
@@ -18,9 +19,9 @@ programs.
 
 Nothing here raises on bad numbers: every element gets a :class:`CollisionStatus`. Elements
 with NaN or infinite data and elements whose equality constraints have no solution at all
-(checked by least squares before solving; ``v* = inf``) are not sent to the solver; a solver exception
-for the batch is retried element by element; every returned point is checked against the
-constraints and rejected (``SOLVER_FAILED``) if it violates them.
+(checked by least squares before solving; ``v* = inf``) are not sent to the solver; a
+solver exception for the batch is retried element by element; every returned point is
+checked against the constraints and rejected (``SOLVER_FAILED``) if it violates them.
 """
 from __future__ import annotations
 
@@ -93,19 +94,26 @@ def solve_gauge(A: Tensor, b: Tensor, active: Tensor | None = None, solver_args:
         :class:`CollisionStatus` codes. Where ``A z = b`` has no solution at all the value is
         ``inf`` (the optimum of an infeasible minimisation) and the reason ``INFEASIBLE``;
         the caller decides what that means. Other failures give value 0.
+
+    Examples:
+        >>> A = torch.tensor([[[1.0, 1.0]], [[0.0, 0.0]]], dtype=torch.float64)
+        >>> b = torch.tensor([[1.0], [1.0]], dtype=torch.float64)
+        >>> value, reason = solve_gauge(A, b)
+        >>> value.round(decimals=6), reason
+        (tensor([0.5000,    inf], dtype=torch.float64), tensor([0, 3], dtype=torch.int8))
     """
     batch, (m, p) = A.shape[:-2], A.shape[-2:]
     if p == 0:  # a zero column leaves the program unchanged and gives cvxpy a variable
         A = torch.nn.functional.pad(A, (0, 1))
         p = 1
     rows = batch.numel()
-    flat_A, flat_b = A.reshape(rows, m, p).double(), b.reshape(rows, m).double()
+    flat_A, flat_b = A.reshape(rows, m, p).double().cpu(), b.reshape(rows, m).double().cpu()
     reason = _status_of_data(flat_A, flat_b)
     feasible = _has_solution(flat_A, flat_b)
     reason = torch.where((reason == CollisionStatus.OK) & ~feasible, int(CollisionStatus.INFEASIBLE), reason)
     todo = reason == CollisionStatus.OK
     if active is not None:
-        todo &= active.reshape(rows)
+        todo &= active.reshape(rows).cpu()
     value = flat_A.new_zeros(rows)
     if m and bool(todo.any()):
         idx = todo.nonzero().squeeze(-1)
@@ -117,7 +125,7 @@ def solve_gauge(A: Tensor, b: Tensor, active: Tensor | None = None, solver_args:
         value = value.index_put((idx,), torch.where(good, v, 0.0))
         reason = reason.index_put((idx,), torch.where(good, reason[idx], int(CollisionStatus.SOLVER_FAILED)))
     value = torch.where(reason == CollisionStatus.INFEASIBLE, float("inf"), value)
-    return value.to(A.dtype).reshape(batch), reason.reshape(batch)
+    return value.to(A.device, A.dtype).reshape(batch), reason.to(A.device).reshape(batch)
 
 
 def solve_distance(G: Tensor, d: Tensor, A: Tensor, b: Tensor, active: Tensor | None = None,
@@ -146,11 +154,11 @@ def solve_distance(G: Tensor, d: Tensor, A: Tensor, b: Tensor, active: Tensor | 
         p = 1
     rows = batch.numel()
     flat = [G.reshape(rows, n, p), d.reshape(rows, n), A.reshape(rows, nc, p), b.reshape(rows, nc)]
-    flat = [t.double() for t in flat]
+    flat = [t.double().cpu() for t in flat]
     reason = _status_of_data(*flat)
     todo = reason == CollisionStatus.OK
     if active is not None:
-        todo &= active.reshape(rows)
+        todo &= active.reshape(rows).cpu()
     dist = flat[0].new_zeros(rows)
     if bool(todo.any()):
         idx = todo.nonzero().squeeze(-1)
@@ -161,7 +169,7 @@ def solve_distance(G: Tensor, d: Tensor, A: Tensor, b: Tensor, active: Tensor | 
         good = solved & torch.isfinite(t.detach()) & _satisfies(sub[2], sub[3], z) & bounded
         dist = dist.index_put((idx,), torch.where(good, t.clamp_min(0), 0.0))
         reason = reason.index_put((idx,), torch.where(good, reason[idx], int(CollisionStatus.SOLVER_FAILED)))
-    return dist.to(G.dtype).reshape(batch), reason.reshape(batch)
+    return dist.to(G.device, G.dtype).reshape(batch), reason.to(G.device).reshape(batch)
 
 
 def _solve(layer: CvxpyLayer, params: tuple[Tensor, ...], z_size: int, solver_args: dict | None
