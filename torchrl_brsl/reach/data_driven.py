@@ -1,0 +1,328 @@
+"""Data-driven reachability of a black-box system (paper Algorithm 2, fitted once)."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Sequence
+
+import torch
+from tensordict import TensorDict
+from torch import Tensor, nn
+
+from torchrl_brsl.reach.lipschitz import covering_radius, residual_lipschitz
+from torchrl_brsl.sets import Zonotope, pad_generators, reduce_girard
+from torchrl_brsl.sets._checks import check_tensor
+
+
+class DataDrivenReach(nn.Module):
+    """Over-approximate reachable sets of ``x+ = f(x, u) + w`` from offline data.
+
+    Algorithm 2 of the paper recomputes ``M_j = (X+ - c_w) pinv([1; X- - x*_j; U- - u_j])``
+    at every plan step. That regressor is an invertible affine re-parametrisation of
+    ``[1; X-; U-]``, so slopes, residuals and the error zonotope are the same at every
+    linearisation point and only the intercept moves, to the global fit evaluated there.
+    This class therefore fits once, and a reachable set step is the affine map
+
+        R_{j+1} = Ā R_j + B u_j + k + Z(0, G_E),
+
+    whose generators never depend on the plan (they are precomputed per horizon) and whose
+    centres are affine in the plan (so gradients w.r.t. actions are exact).
+
+    **Model.** Translation-invariant dims ``T`` (positions, paper Assumption 1) enter with
+    identity slope: with ``P`` the selection of ``T`` and ``φ(z) = [1; x_F; u]`` over the
+    remaining dims ``F``, the least-squares fit is ``x+ - c_w - P x ≈ Θᵀ φ(z)``. The model error
+    ``g(z) = f(z) - P x - Θᵀ φ(z)`` then depends on ``z = (x_F, u)`` only.
+
+    **Error term (soundness).** At the data, ``r_i = g(z_i) + (w_i - c_w)``, so
+    ``g(z_i) ∈ [r_lo, r_hi] + Z(0, G_w)``. For a query ``z`` within the covering radius
+    ``δ`` (scaled inputs) of a data point ``z_i``, ``|g_k(z) - g_k(z_i)| <= L_k δ`` where
+    ``L_k`` is the Lipschitz constant **of the residual g_k**, not of ``f_k``: ``g`` subtracts
+    the linear model, so its constant can exceed that of ``f`` (up to ``L_f + ||[A B]||``), and
+    only ``g`` is evaluated between data points. ``L_k`` is estimated from neighbouring data
+    pairs with the noise width removed (:func:`residual_lipschitz`). With ``w ∈ W``,
+
+        x+ ∈ P x + Θᵀφ(z) + c_w + [r_lo, r_hi] + Z(0, G_w) + [-Lδ, Lδ] + Z(0, G_w),
+
+    i.e. ``G_E = [diag((r_hi - r_lo)/2 + L δ), 2 G_w]``. The guarantee holds under the paper's
+    assumptions: noise in ``W`` (offline and online), ``L`` and ``δ`` representative of the
+    system, and queries inside the region the data covers (see :meth:`data_distance`).
+
+    Data come as rows: ``x_minus[i] -> x_plus[i]`` under ``u_minus[i]`` (samples along the
+    first dimension; several trajectories are simply concatenated, or passed as lists).
+
+    Args:
+        params: the fitted quantities (see :meth:`fit`); a :class:`~tensordict.TensorDict`.
+        translation_invariant_dims: state indices with identity dynamics slope.
+        covering_radius: ``δ`` in scaled input units.
+        max_generators: generator width of the plan-independent error part of each set
+            (Girard reduction); ``None`` keeps them all (width grows linearly with the horizon).
+
+    Examples:
+        >>> reach = DataDrivenReach.fit(x_minus, x_plus, u_minus, noise=W, translation_invariant_dims=(0, 1))
+        >>> sets = reach.reach(Zonotope.from_point(x0), plan)  # plan [..., H, m]
+        >>> sets.batch_size  # [..., H]: R_1 .. R_H
+    """
+
+    def __init__(self, params: TensorDict, translation_invariant_dims: Sequence[int], covering_radius: float,
+                 max_generators: int | None = None):
+        super().__init__()
+        for key, value in params.items():
+            self.register_buffer(key, value)
+        self.translation_invariant_dims = tuple(int(d) for d in translation_invariant_dims)
+        self.covering_radius = float(covering_radius)
+        self.max_generators = max_generators
+        self._cache: dict = {}
+        self._tree = None
+
+    # ----------------------------------------------------------------- fitting
+    @classmethod
+    def fit(cls, x_minus, x_plus, u_minus, noise: Zonotope, translation_invariant_dims: Sequence[int] = (),
+            max_generators: int | None = None, n_neighbors: int = 10, lipschitz_margin: float = 1.0,
+            dtype: torch.dtype = torch.float64) -> DataDrivenReach:
+        """Fit the model and its error zonotope from offline transitions.
+
+        Args:
+            x_minus: ``[N, n]`` states (or a list of ``[N_i, n]`` trajectories).
+            x_plus: ``[N, n]`` successor states.
+            u_minus: ``[N, m]`` actions.
+            noise: the process-noise zonotope ``W`` (unbatched, ``n``-dimensional).
+            translation_invariant_dims: state dims with identity slope (positions), left out of
+                the regressors, the Lipschitz constants and the covering radius.
+            max_generators: see the class docstring.
+            n_neighbors: neighbours per point for the Lipschitz estimate.
+            lipschitz_margin: factor (>= 1) applied to the estimated constants.
+            dtype: computation dtype (float64 by default).
+        """
+        x_minus = _rows("x_minus", x_minus, dtype)
+        x_plus = _rows("x_plus", x_plus, dtype)
+        u_minus = _rows("u_minus", u_minus, dtype)
+        n, m = x_minus.shape[1], u_minus.shape[1]
+        if x_plus.shape != x_minus.shape:
+            raise ValueError(f"`x_plus` {tuple(x_plus.shape)} must match `x_minus` {tuple(x_minus.shape)}")
+        if u_minus.shape[0] != x_minus.shape[0]:
+            raise ValueError(f"`u_minus` has {u_minus.shape[0]} rows but `x_minus` has {x_minus.shape[0]}")
+        if not isinstance(noise, Zonotope) or noise.batch_size != torch.Size([]) or noise.dim != n:
+            raise ValueError(f"`noise` must be an unbatched {n}-dimensional Zonotope")
+        if lipschitz_margin < 1:
+            raise ValueError(f"`lipschitz_margin` must be >= 1, got {lipschitz_margin}")
+        fixed = sorted({int(d) % n for d in translation_invariant_dims})
+        if len(fixed) != len(tuple(translation_invariant_dims)) or any(not -n <= d < n for d in translation_invariant_dims):
+            raise ValueError(f"`translation_invariant_dims`={tuple(translation_invariant_dims)} must be distinct state indices < {n}")
+        free = [d for d in range(n) if d not in fixed]
+        n_samples = x_minus.shape[0]
+        if n_samples < 1 + len(free) + m:
+            raise ValueError(f"need at least {1 + len(free) + m} transitions to fit, got {n_samples}")
+
+        w_c = noise.center.to(dtype)
+        w_g = noise.generators.to(dtype)
+        select = torch.zeros(n, n, dtype=dtype)
+        select[fixed, fixed] = 1.0
+        inputs = torch.cat((x_minus[:, free], u_minus), dim=1)  # [N, d]
+        regressors = torch.cat((torch.ones(n_samples, 1, dtype=dtype), inputs), dim=1)
+        target = x_plus - w_c - x_minus @ select.T
+        theta = torch.linalg.lstsq(regressors, target, driver="gelsd").solution  # [1 + d, n]
+        residual = target - regressors @ theta
+        r_lo, r_hi = residual.amin(0), residual.amax(0)
+
+        scale = (inputs.amax(0) - inputs.amin(0)).clamp_min(1e-9)
+        scaled = inputs / scale
+        delta = covering_radius(scaled)
+        lipschitz = residual_lipschitz(scaled, residual, 2 * w_g.abs().sum(-1), n_neighbors) * lipschitz_margin
+
+        state_matrix = select.clone()
+        state_matrix[:, free] += theta[1:1 + len(free)].T
+        params = TensorDict(
+            state_matrix=state_matrix,  # Ā [n, n]
+            input_matrix=theta[1 + len(free):].T.contiguous(),  # B [n, m]
+            offset=theta[0] + w_c + (r_lo + r_hi) / 2,  # k [n]
+            error_generators=torch.cat((torch.diag((r_hi - r_lo) / 2 + lipschitz * delta), 2 * w_g), dim=1),
+            lipschitz=lipschitz,
+            input_scale=scale,
+            residual_low=r_lo,
+            residual_high=r_hi,
+            noise_center=w_c,
+            noise_generators=w_g,
+            x_minus=x_minus,
+            x_plus=x_plus,
+            u_minus=u_minus,
+        )
+        return cls(params, fixed, delta, max_generators)
+
+    # ----------------------------------------------------------------- properties
+    @property
+    def state_dim(self) -> int:
+        return self.state_matrix.shape[0]
+
+    @property
+    def action_dim(self) -> int:
+        return self.input_matrix.shape[1]
+
+    @property
+    def free_dims(self) -> list[int]:
+        """State dims that enter the regressors (all but the translation-invariant ones)."""
+        return [d for d in range(self.state_dim) if d not in self.translation_invariant_dims]
+
+    @property
+    def noise(self) -> Zonotope:
+        return Zonotope(self.noise_center, self.noise_generators)
+
+    # ----------------------------------------------------------------- reachability
+    def reach_centers(self, x0: Tensor, actions: Tensor) -> Tensor:
+        """Centres of ``R_1 .. R_H``, affine in the plan (the hot path).
+
+        Args:
+            x0: ``[..., n]`` centre of the initial set.
+            actions: ``[..., H, m]``.
+
+        Returns:
+            ``[..., H, n]`` in the model's dtype.
+        """
+        horizon = actions.shape[-2]
+        powers, transfer, drift = self._transfer(horizon)
+        x0 = x0.to(powers.dtype)
+        flat = actions.to(powers.dtype).flatten(-2)  # [..., H m]
+        free = (powers @ x0.unsqueeze(-2).unsqueeze(-1)).squeeze(-1)  # [..., H, n]
+        forced = (transfer @ flat.unsqueeze(-1)).squeeze(-1).unflatten(-1, (horizon, self.state_dim))
+        return free + forced + drift
+
+    def error_generators_sequence(self, horizon: int) -> Tensor:
+        """Plan-independent generators of ``R_1 .. R_H`` from a point initial set: ``[H, n, p]``.
+
+        ``E_1 = G_E``, ``E_{j+1} = reduce([Ā E_j, G_E])`` (Girard, to ``max_generators`` when
+        set, else zero-padded to the final width). Cached per horizon.
+        """
+        key = ("errors", horizon)
+        if key not in self._cache:
+            g_e = self.error_generators
+            width = self.max_generators or horizon * g_e.shape[1]
+            if width < self.state_dim:
+                raise ValueError(f"`max_generators`={width} must be at least the state dimension {self.state_dim}")
+            current, out = g_e, []
+            for _ in range(horizon):
+                if current.shape[1] > width:
+                    current = reduce_girard(current, width)
+                out.append(pad_generators(current, width))
+                current = torch.cat((self.state_matrix @ current, g_e), dim=1)
+            self._cache[key] = torch.stack(out)
+        return self._cache[key]
+
+    def reach(self, initial: Zonotope, actions: Tensor) -> Zonotope:
+        """Reachable sets ``R_1 .. R_H`` of a batch of plans.
+
+        Args:
+            initial: initial sets, batch ``[...]`` (``Zonotope.from_point(x)`` for a measured
+                state).
+            actions: ``[..., H, m]`` plans (broadcast with ``initial``'s batch).
+
+        Returns:
+            A :class:`Zonotope` of batch ``[..., H]``, differentiable w.r.t. ``actions`` and the
+            initial centre and generators.
+        """
+        actions = check_tensor("actions", actions, min_ndim=2, finite=False)
+        if not isinstance(initial, Zonotope) or initial.dim != self.state_dim:
+            raise ValueError(f"`initial` must be a {self.state_dim}-dimensional Zonotope")
+        if actions.shape[-1] != self.action_dim:
+            raise ValueError(f"`actions` must end in {self.action_dim} (the action dim), got {tuple(actions.shape)}")
+        horizon = actions.shape[-2]
+        centers = self.reach_centers(initial.center, actions)
+        batch = centers.shape[:-1]
+        errors = self.error_generators_sequence(horizon).expand(*batch, self.state_dim, -1)
+        if initial.n_generators:
+            powers = self._transfer(horizon)[0]
+            g0 = powers @ initial.generators.to(powers.dtype).unsqueeze(-3)  # [..., H, n, p0]
+            errors = torch.cat((g0.expand(*batch, *g0.shape[-2:]), errors), dim=-1)
+        return Zonotope(centers, errors)
+
+    def reach_literal(self, initial: Zonotope, actions: Tensor) -> Zonotope:
+        """Reference: the paper's literal per-step form, one pseudo-inverse per step.
+
+        Unbatched (``initial`` batch ``[]``, ``actions`` ``[H, m]``), no order reduction,
+        linearised at each set's centre. Agrees with :meth:`reach` (``max_generators=None``)
+        to rounding; kept for tests and benchmarks.
+        """
+        dtype = self.state_matrix.dtype
+        free, fixed = self.free_dims, list(self.translation_invariant_dims)
+        x_minus, u_minus = self.x_minus, self.u_minus
+        target = self.x_plus - self.noise_center
+        target[:, fixed] -= x_minus[:, fixed]
+        center, gens = initial.center.to(dtype), initial.generators.to(dtype)
+        centers, generators = [], []
+        for u in actions.to(dtype):
+            regressors = torch.cat((torch.ones(len(x_minus), 1, dtype=dtype), x_minus[:, free] - center[free],
+                                    u_minus - u), dim=1)
+            M = target.T @ torch.linalg.pinv(regressors.T)  # [n, 1 + d]
+            residual = target - regressors @ M.T
+            r_lo, r_hi = residual.amin(0), residual.amax(0)
+            slope = torch.zeros(self.state_dim, self.state_dim, dtype=dtype)
+            slope[fixed, fixed] = 1.0
+            slope[:, free] += M[:, 1:1 + len(free)]
+            box = torch.diag((r_hi - r_lo) / 2 + self.lipschitz * self.covering_radius)
+            shifted = torch.zeros_like(center)
+            shifted[fixed] = center[fixed]
+            center = shifted + M[:, 0] + self.noise_center + (r_lo + r_hi) / 2
+            gens = torch.cat((slope @ gens, box, 2 * self.noise_generators), dim=1)
+            centers.append(center)
+            generators.append(gens)
+        width = generators[-1].shape[1]
+        return Zonotope(torch.stack(centers), torch.stack([pad_generators(g, width) for g in generators]))
+
+    # ----------------------------------------------------------------- data region
+    def data_distance(self, states: Tensor, actions: Tensor) -> Tensor:
+        """Scaled distance from ``(states, actions)`` to the nearest data point: ``[...]``.
+
+        Queries with a distance above :attr:`covering_radius` lie outside the region the
+        offline data cover, where the error bound is not backed by data.
+        """
+        from scipy.spatial import cKDTree
+
+        if self._tree is None:
+            inputs = torch.cat((self.x_minus[:, self.free_dims], self.u_minus), dim=1) / self.input_scale
+            self._tree = cKDTree(inputs.cpu().numpy())
+        query = torch.cat((states[..., self.free_dims].to(self.input_scale.dtype),
+                           actions.to(self.input_scale.dtype)), dim=-1) / self.input_scale
+        dist, _ = self._tree.query(query.detach().reshape(-1, query.shape[-1]).cpu().numpy())
+        return torch.as_tensor(dist, dtype=query.dtype).reshape(query.shape[:-1])
+
+    # ----------------------------------------------------------------- persistence
+    def save(self, path: str | Path) -> None:
+        """Write the fitted model (parameters, data and settings) to ``path``."""
+        params = {name: buf for name, buf in self.named_buffers()}
+        torch.save({"params": params, "translation_invariant_dims": self.translation_invariant_dims,
+                    "covering_radius": self.covering_radius, "max_generators": self.max_generators}, path)
+
+    @classmethod
+    def load(cls, path: str | Path, map_location=None) -> DataDrivenReach:
+        """Read a model written by :meth:`save`."""
+        state = torch.load(path, map_location=map_location, weights_only=True)
+        return cls(TensorDict(state["params"]), state["translation_invariant_dims"], state["covering_radius"],
+                   state["max_generators"])
+
+    def _apply(self, fn, recurse=True):
+        self._cache.clear()
+        return super()._apply(fn, recurse)
+
+    def _transfer(self, horizon: int) -> tuple[Tensor, Tensor, Tensor]:
+        """``Ā^1..Ā^H`` ``[H, n, n]``, the block-Toeplitz input map ``[H n, H m]`` and the drift ``[H, n]``."""
+        key = ("transfer", horizon)
+        if key not in self._cache:
+            A, B, k = self.state_matrix, self.input_matrix, self.offset
+            n, m = B.shape
+            powers = [torch.eye(n, dtype=A.dtype, device=A.device)]
+            for _ in range(horizon):
+                powers.append(A @ powers[-1])
+            transfer = A.new_zeros(horizon, n, horizon, m)
+            drift = A.new_zeros(horizon, n)
+            for j in range(horizon):
+                for i in range(j + 1):
+                    transfer[j, :, i] = powers[j - i] @ B
+                drift[j] = sum(powers[i] @ k for i in range(j + 1))
+            self._cache[key] = (torch.stack(powers[1:]), transfer.reshape(horizon * n, horizon * m), drift)
+        return self._cache[key]
+
+
+def _rows(name: str, value, dtype: torch.dtype) -> Tensor:
+    if isinstance(value, (list, tuple)):
+        value = torch.cat([check_tensor(f"{name}[{i}]", v, min_ndim=2) for i, v in enumerate(value)])
+    value = check_tensor(name, value, min_ndim=2)
+    if value.ndim != 2:
+        raise ValueError(f"`{name}` must be [N, dim] (samples along the first dimension), got {tuple(value.shape)}")
+    return value.to(dtype)

@@ -1,0 +1,122 @@
+"""Small nonlinear black-box systems with bounded noise, for demos, tests and benchmarks.
+
+Each system exposes ``step(x, u, generator=None)`` (batched, noisy), its noise zonotope,
+its data region, and :meth:`offline_data` in the layout :meth:`DataDrivenReach.fit` takes.
+The reachability code never reads their equations: it only sees sampled transitions.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from torchrl_brsl.sets import Zonotope
+
+
+@dataclass
+class BlackBoxSystem:
+    """Base class: subclasses define ``dynamics`` and the data region.
+
+    Attributes:
+        dt: time step [s].
+        state_low, state_high: ``[n]`` box of the data region.
+        action_low, action_high: ``[m]`` action bounds.
+        noise_half_width: ``[n]`` half-widths of the (box) noise zonotope.
+        translation_invariant_dims: position dims.
+    """
+
+    dt: float
+    state_low: Tensor
+    state_high: Tensor
+    action_low: Tensor
+    action_high: Tensor
+    noise_half_width: Tensor
+    translation_invariant_dims: tuple[int, ...]
+
+    @property
+    def noise(self) -> Zonotope:
+        """The process-noise zonotope ``W``."""
+        return Zonotope(torch.zeros_like(self.noise_half_width), torch.diag(self.noise_half_width))
+
+    def dynamics(self, x: Tensor, u: Tensor) -> Tensor:
+        raise NotImplementedError
+
+    def step(self, x: Tensor, u: Tensor, generator: torch.Generator | None = None) -> Tensor:
+        """``f(x, u) + w`` with ``w`` uniform in ``W``: ``[..., n]``."""
+        nominal = self.dynamics(x, u)
+        w = (torch.rand(nominal.shape, generator=generator, dtype=nominal.dtype) * 2 - 1) * self.noise_half_width
+        return nominal + w
+
+    def sample_states(self, num: int, generator: torch.Generator | None = None) -> Tensor:
+        """Uniform states in the data region: ``[num, n]``."""
+        return _uniform(self.state_low, self.state_high, num, generator)
+
+    def sample_actions(self, *shape: int, generator: torch.Generator | None = None) -> Tensor:
+        """Uniform admissible actions: ``[*shape, m]``."""
+        flat = _uniform(self.action_low, self.action_high, math.prod(shape), generator)
+        return flat.reshape(*shape, -1)
+
+    def offline_data(self, num: int = 500, generator: torch.Generator | None = None):
+        """``num`` noisy transitions from random states and actions: ``(x_minus, x_plus, u_minus)``."""
+        x = self.sample_states(num, generator)
+        u = self.sample_actions(num, generator=generator)
+        return x, self.step(x, u, generator), u
+
+
+class DoubleIntegrator(BlackBoxSystem):
+    """Planar double integrator with quadratic drag and speed / acceleration saturation.
+
+    State ``(x, y, vx, vy)``, action ``(ax, ay)`` in ``[-1, 1]^2``, ``dt = 0.1``.
+    """
+
+    def __init__(self, drag: float = 0.3, max_speed: float = 2.0):
+        d = torch.float64
+        super().__init__(dt=0.1, state_low=torch.tensor([-2.0, -2.0, -max_speed, -max_speed], dtype=d),
+                         state_high=torch.tensor([2.0, 2.0, max_speed, max_speed], dtype=d),
+                         action_low=-torch.ones(2, dtype=d), action_high=torch.ones(2, dtype=d),
+                         noise_half_width=torch.tensor([0.002, 0.002, 0.01, 0.01], dtype=d),
+                         translation_invariant_dims=(0, 1))
+        self.drag, self.max_speed = drag, max_speed
+
+    def dynamics(self, x: Tensor, u: Tensor) -> Tensor:
+        p, v = x[..., :2], x[..., 2:]
+        a = u.clamp(-1.0, 1.0) - self.drag * v * v.abs()
+        v_next = (v + self.dt * a).clamp(-self.max_speed, self.max_speed)
+        return torch.cat((p + self.dt * v_next, v_next), dim=-1)
+
+    def braking(self, x: Tensor) -> Tensor:
+        """Decelerate as hard as allowed: ``clip(-v / dt, -1, 1)``."""
+        return (-x[..., 2:] / self.dt).clamp(-1.0, 1.0)
+
+
+class Unicycle(BlackBoxSystem):
+    """Unicycle with speed state: ``(x, y, theta, v)``, action ``(acceleration, yaw rate)``.
+
+    ``x+ = x + dt v cos(theta)``, ``y+ = y + dt v sin(theta)``, ``theta+ = theta + dt omega``,
+    ``v+ = clip(v + dt a, 0, v_max)``; ``a in [-1, 1]``, ``omega in [-1, 1]``.
+    """
+
+    def __init__(self, max_speed: float = 1.0):
+        d = torch.float64
+        super().__init__(dt=0.1, state_low=torch.tensor([-2.0, -2.0, -1.0, 0.0], dtype=d),
+                         state_high=torch.tensor([2.0, 2.0, 1.0, max_speed], dtype=d),
+                         action_low=-torch.ones(2, dtype=d), action_high=torch.ones(2, dtype=d),
+                         noise_half_width=torch.tensor([0.002, 0.002, 0.005, 0.01], dtype=d),
+                         translation_invariant_dims=(0, 1))
+        self.max_speed = max_speed
+
+    def dynamics(self, x: Tensor, u: Tensor) -> Tensor:
+        theta, v = x[..., 2], x[..., 3]
+        a, omega = u[..., 0].clamp(-1.0, 1.0), u[..., 1].clamp(-1.0, 1.0)
+        return torch.stack((x[..., 0] + self.dt * v * torch.cos(theta), x[..., 1] + self.dt * v * torch.sin(theta),
+                            theta + self.dt * omega, (v + self.dt * a).clamp(0.0, self.max_speed)), dim=-1)
+
+    def braking(self, x: Tensor) -> Tensor:
+        """Full deceleration, no turning."""
+        return torch.stack(((-x[..., 3] / self.dt).clamp(-1.0, 1.0), torch.zeros_like(x[..., 3])), dim=-1)
+
+
+def _uniform(low: Tensor, high: Tensor, num: int, generator: torch.Generator | None) -> Tensor:
+    return low + (high - low) * torch.rand(num, low.shape[-1], generator=generator, dtype=low.dtype)
