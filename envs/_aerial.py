@@ -112,7 +112,9 @@ class AerialTask(GoalTask):
         return bool(np.all(position >= self.data_region_low) and np.all(position <= self.data_region_high))
 
 
-def aerial_model(name: str, empty: bool, n_pillars: int, n_boxes: int, radius: float, mass: float, n_rotors: int) -> str:
+def aerial_model(
+    name: str, empty: bool, n_pillars: int, n_boxes: int, radius: float, mass: float, n_rotors: int
+) -> str:
     """MJCF of a multirotor in the arena (see the module docstring).
 
     Args:
@@ -131,7 +133,8 @@ def aerial_model(name: str, empty: bool, n_pillars: int, n_boxes: int, radius: f
         x, y = arm * np.cos(angle), arm * np.sin(angle)
         visuals.append(
             f'<geom class="visual" type="capsule" fromto="0 0 0 {x:.4f} {y:.4f} 0" size="0.02" rgba=".15 .15 .17 1"/>'
-            f'<geom class="visual" type="cylinder" pos="{x:.4f} {y:.4f} 0.03" size="{0.35 * radius:.4f} 0.004" rgba=".6 .6 .65 .6"/>'
+            f'<geom class="visual" type="cylinder" pos="{x:.4f} {y:.4f} 0.03" size="{0.35 * radius:.4f} 0.004"'
+            ' rgba=".6 .6 .65 .6"/>'
         )
     robot = f"""
     <body name="robot" pos="0 0 2" gravcomp="1">
@@ -150,7 +153,8 @@ def aerial_model(name: str, empty: bool, n_pillars: int, n_boxes: int, radius: f
     kv = mass / _SERVO_TIME_CONSTANT
     force = mass * MAX_ACCELERATION
     actuators = "\n".join(
-        f'    <velocity name="v{axis}" joint="root" gear="{gear}" kv="{kv:.6g}" forcelimited="true" forcerange="{-force:.6g} {force:.6g}"/>'
+        f'    <velocity name="v{axis}" joint="root" gear="{gear}" kv="{kv:.6g}" forcelimited="true"'
+        f' forcerange="{-force:.6g} {force:.6g}"/>'
         for axis, gear in (("x", "1 0 0 0 0 0"), ("y", "0 1 0 0 0 0"), ("z", "0 0 1 0 0 0"))
     )
     return with_actuators(xml, actuators)

@@ -28,10 +28,10 @@ def rings(n_azimuth: int, elevations: np.ndarray) -> np.ndarray:
     """
     azimuth = np.arange(n_azimuth) * 2 * np.pi / n_azimuth
     elevation = np.asarray(elevations, dtype=np.float64)[:, None]
-    return np.stack(
-        [np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation) * np.ones_like(azimuth)],
-        axis=-1,
-    ).reshape(-1, 3)
+    x = np.cos(elevation) * np.cos(azimuth)
+    y = np.cos(elevation) * np.sin(azimuth)
+    z = np.sin(elevation) * np.ones_like(azimuth)
+    return np.stack([x, y, z], axis=-1).reshape(-1, 3)
 
 
 class Lidar:
@@ -43,9 +43,14 @@ class Lidar:
         exclude_body: body id whose geoms the rays ignore (the robot).
 
     Examples:
-        >>> lidar = Lidar(planar_fan(18, np.pi), max_range=3.5, exclude_body=1)  # doctest: +SKIP
-        >>> lidar.scan(physics, origin=np.zeros(3), yaw=0.0).shape  # doctest: +SKIP
-        (18,)
+        >>> from envs.diffdrive_nav import build_environment
+        >>> env = build_environment(seed=0)
+        >>> _ = env.reset()
+        >>> robot = env.physics.model.name2id("robot", "body")
+        >>> lidar = Lidar(planar_fan(18, np.pi), max_range=3.5, exclude_body=robot)
+        >>> ranges = lidar.scan(env.physics, origin=np.array([0.0, 0.0, 0.15]), yaw=0.0)
+        >>> ranges.shape, bool((ranges <= 3.5).all())
+        ((18,), True)
     """
 
     def __init__(self, directions: np.ndarray, max_range: float, exclude_body: int):

@@ -57,7 +57,8 @@ def model_xml(
     </default>
   </default>
   <worldbody>
-    <geom name="floor" class="visual" type="plane" pos="0 0 {floor_z:.6g}" size="{floor_half_extent:.6g} {floor_half_extent:.6g} 0.1" material="grid"/>
+    <geom name="floor" class="visual" type="plane" pos="0 0 {floor_z:.6g}"
+          size="{floor_half_extent:.6g} {floor_half_extent:.6g} 0.1" material="grid"/>
     <camera name="overview" pos="0 0 {overview_height:.6g}" xyaxes="1 0 0 0 1 0" fovy="60"/>
     {robot}
     {obstacles}

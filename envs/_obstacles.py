@@ -223,8 +223,14 @@ class ObstacleSlots:
         kinds: slot kinds, as given to :func:`obstacle_bodies_xml`.
 
     Examples:
-        >>> slots = ObstacleSlots(physics, ["box", "cylinder"])  # doctest: +SKIP
-        >>> slots.apply(physics, obstacles)  # doctest: +SKIP
+        >>> from envs.point_circle import build_environment
+        >>> env = build_environment(seed=0)
+        >>> slots = ObstacleSlots(env.physics, ["box"] * 4)
+        >>> wall = Obstacle("box", np.array([2.0, 0.0, 0.1]), np.array([0.1, 0.2, 0.2]))
+        >>> with env.physics.reset_context():
+        ...     slots.apply(env.physics, [wall] * 4)
+        >>> env.physics.data.mocap_pos[0].tolist()
+        [2.0, 0.0, 0.1]
     """
 
     def __init__(self, physics, kinds: Sequence[str]):

@@ -29,7 +29,6 @@ class SafetyTask(base.Task):
             the robot leaves the data region, and start from random velocities.
         layout: index of a fixed evaluation layout (independent of the seed), or
             ``None`` for a layout drawn from the task's random state each episode.
-        episode_steps: time limit in control steps.
         terminate_on_collision: end the episode (``terminated``) on a collision.
         random: seed or ``numpy.random.RandomState``.
 
@@ -57,14 +56,12 @@ class SafetyTask(base.Task):
         *,
         empty: bool = False,
         layout: int | None = None,
-        episode_steps: int = 200,
         terminate_on_collision: bool = True,
         random=None,
     ):
         super().__init__(random=random)
         self.empty = bool(empty)
         self.layout_index = layout
-        self.episode_steps = int(episode_steps)
         self.terminate_on_collision = bool(terminate_on_collision)
         self.noise_scale = 1.0
         self.layout: Layout | None = None
@@ -110,7 +107,11 @@ class SafetyTask(base.Task):
     # ------------------------------------------------------------------ dm_control API
     def action_spec(self, physics):
         return specs.BoundedArray(
-            shape=self.action_low.shape, dtype=np.float64, minimum=self.action_low, maximum=self.action_high, name="action"
+            shape=self.action_low.shape,
+            dtype=np.float64,
+            minimum=self.action_low,
+            maximum=self.action_high,
+            name="action",
         )
 
     def observation_spec(self, physics):
@@ -198,7 +199,9 @@ class SafetyTask(base.Task):
         return zonotope_batch(obstacles, self.robot_radius, self.obstacle_dim, self.capacity)
 
     @classmethod
-    def safety_info(cls, *, n_brk: int, n_plan: int, braking_action, braking_policy, stop_tolerance: float) -> SafetyInfo:
+    def safety_info(
+        cls, *, n_brk: int, n_plan: int, braking_action, braking_policy, stop_tolerance: float
+    ) -> SafetyInfo:
         """Builds the task's :class:`SafetyInfo` from its class constants."""
 
         def as_tensor(array) -> torch.Tensor:

@@ -160,8 +160,8 @@ def _model(empty: bool) -> str:
       <inertial pos="0 0 0" mass="1" diaginertia="0.01 0.01 0.01"/>
       <geom name="robot" class="robot" type="sphere" size="{DiffDriveNav.robot_radius}"/>
       <geom class="visual" type="cylinder" size="0.09 0.07" pos="-0.02 0 -0.02" rgba=".15 .15 .17 1"/>
-      <geom class="visual" type="cylinder" size="0.033 0.009" pos="0 0.08 -0.117" euler="1.5708 0 0" rgba=".1 .1 .1 1"/>
-      <geom class="visual" type="cylinder" size="0.033 0.009" pos="0 -0.08 -0.117" euler="1.5708 0 0" rgba=".1 .1 .1 1"/>
+      <geom class="visual" type="cylinder" size="0.033 0.009" pos="0 0.08 -0.117" euler="1.5708 0 0" rgba="0 0 0 1"/>
+      <geom class="visual" type="cylinder" size="0.033 0.009" pos="0 -0.08 -0.117" euler="1.5708 0 0" rgba="0 0 0 1"/>
       <geom class="visual" type="cylinder" size="0.035 0.02" pos="0 0 0.07" rgba=".2 .2 .2 1"/>
       <geom class="visual" type="box" size="0.03 0.01 0.005" pos="0.06 0 0.055" rgba=".9 .3 .2 1"/>
       <site name="base"/>
@@ -175,14 +175,19 @@ def _model(empty: bool) -> str:
     xml = model_xml("diffdrive_nav", 0.02, robot, obstacles, floor_half_extent=3.0, overview_height=5.0)
     return with_actuators(
         xml,
-        """    <velocity name="forward" site="base" gear="1 0 0 0 0 0" kv="20" forcelimited="true" forcerange="-0.5 0.5"/>
-    <velocity name="lateral" site="base" gear="0 1 0 0 0 0" kv="40" forcelimited="true" forcerange="-5 5"/>
-    <velocity name="turn" joint="yaw" kv="0.2" forcelimited="true" forcerange="-0.02 0.02"/>""",
+        """    <velocity name="forward" site="base" gear="1 0 0 0 0 0" kv="20" forcerange="-0.5 0.5"/>
+    <velocity name="lateral" site="base" gear="0 1 0 0 0 0" kv="40" forcerange="-5 5"/>
+    <velocity name="turn" joint="yaw" kv="0.2" forcerange="-0.02 0.02"/>""",
     )
 
 
 def build_environment(
-    *, empty: bool = False, layout: int | None = None, seed=None, episode_steps: int = 300, terminate_on_collision: bool = True
+    *,
+    empty: bool = False,
+    layout: int | None = None,
+    seed=None,
+    episode_steps: int = 300,
+    terminate_on_collision: bool = True,
 ) -> control.Environment:
     """The dm_control environment of ``diffdrive_nav``.
 
@@ -198,12 +203,12 @@ def build_environment(
 
     Examples:
         >>> env = build_environment(layout=0)
-        >>> env.reset().observation["obstacles_mask"].sum()
+        >>> int(env.reset().observation["obstacles_mask"].sum())
         12
     """
     physics = dm_mujoco.Physics.from_xml_string(_model(empty))
     task = DiffDriveNav(
-        empty=empty, layout=layout, episode_steps=episode_steps, terminate_on_collision=terminate_on_collision, random=seed
+        empty=empty, layout=layout, terminate_on_collision=terminate_on_collision, random=seed
     )
     return control.Environment(physics, task, time_limit=(episode_steps - 0.5) * task.dt, n_sub_steps=5)
 
@@ -211,5 +216,9 @@ def build_environment(
 def safety_info() -> SafetyInfo:
     """The :class:`SafetyInfo` of ``diffdrive_nav``."""
     return DiffDriveNav.safety_info(
-        n_brk=6, n_plan=8, braking_action=np.zeros(2), braking_policy=functools.partial(zero_command, action_dim=2), stop_tolerance=0.02
+        n_brk=6,
+        n_plan=8,
+        braking_action=np.zeros(2),
+        braking_policy=functools.partial(zero_command, action_dim=2),
+        stop_tolerance=0.02,
     )

@@ -11,8 +11,8 @@
   radius 6 m at height 2.5 m, visited counter-clockwise from ``(6, 0, 2.5)``; the
   robot starts hovering at ``(0, 0, 2.5)``. Obstacles (4 pillars, 4 boxes) are placed
   at random 1.8-3.5 m inside or outside the ring but clear of the straight legs
-  between consecutive checkpoints, so the high-reward path runs next to them. ``K = 14`` obstacles (6 boundary slabs first),
-  ``p = 7`` generators.
+  between consecutive checkpoints, so the high-reward path runs next to them.
+  ``K = 14`` obstacles (6 boundary slabs first), ``p = 7`` generators.
 * Observation (26): 16 lidar ranges / 10 m, offset to the current checkpoint (3),
   offset from the current to the next checkpoint (3; zero at the last one),
   velocity (3), fraction of checkpoints passed.
@@ -48,13 +48,15 @@ def _draw_near_ring(rng: np.random.RandomState, kind: str) -> Obstacle:
     obstacle = draw_obstacle(rng, kind)
     angle = rng.uniform(0, 2 * np.pi)
     radius = RING_RADIUS + rng.choice([-1.0, 1.0]) * rng.uniform(1.8, 3.5)
-    return dataclasses.replace(obstacle, pos=np.array([radius * np.cos(angle), radius * np.sin(angle), obstacle.pos[2]]))
+    position = np.array([radius * np.cos(angle), radius * np.sin(angle), obstacle.pos[2]])
+    return dataclasses.replace(obstacle, pos=position)
 
 
 def checkpoints() -> np.ndarray:
     """The 10 checkpoint centres ``[10, 3]`` in visiting order."""
     angles = np.arange(N_CHECKPOINTS) * 2 * np.pi / N_CHECKPOINTS
-    return np.stack([RING_RADIUS * np.cos(angles), RING_RADIUS * np.sin(angles), np.full(N_CHECKPOINTS, RING_HEIGHT)], 1)
+    height = np.full(N_CHECKPOINTS, RING_HEIGHT)
+    return np.stack([RING_RADIUS * np.cos(angles), RING_RADIUS * np.sin(angles), height], axis=1)
 
 
 class HexarotorWind(AerialTask):
@@ -122,7 +124,12 @@ class HexarotorWind(AerialTask):
 
 
 def build_environment(
-    *, empty: bool = False, layout: int | None = None, seed=None, episode_steps: int = 400, terminate_on_collision: bool = True
+    *,
+    empty: bool = False,
+    layout: int | None = None,
+    seed=None,
+    episode_steps: int = 400,
+    terminate_on_collision: bool = True,
 ) -> control.Environment:
     """The dm_control environment of ``hexarotor_wind``.
 
@@ -143,7 +150,7 @@ def build_environment(
     """
     xml = aerial_model("hexarotor_wind", empty, _N_PILLARS, _N_BOXES, HexarotorWind.robot_radius, mass=2.0, n_rotors=6)
     task = HexarotorWind(
-        empty=empty, layout=layout, episode_steps=episode_steps, terminate_on_collision=terminate_on_collision, random=seed
+        empty=empty, layout=layout, terminate_on_collision=terminate_on_collision, random=seed
     )
     return control.Environment(
         dm_mujoco.Physics.from_xml_string(xml), task, time_limit=(episode_steps - 0.5) * task.dt, n_sub_steps=5

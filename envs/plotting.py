@@ -165,9 +165,8 @@ def plot_topdown(
     if sets is not None:
         set_centers, set_generators = _sets(sets)
         for c, g in zip(set_centers, set_generators):
-            ax.add_patch(
-                Polygon(zonotope_polygon(c, g), closed=True, facecolor=(1.0, 0.6, 0.1, 0.25), edgecolor="tab:orange", lw=0.6)
-            )
+            polygon = zonotope_polygon(c, g)
+            ax.add_patch(Polygon(polygon, closed=True, facecolor=(1.0, 0.6, 0.1, 0.25), edgecolor="tab:orange", lw=0.6))
 
     if td is not None:
         xy = _trajectory(td)

@@ -135,7 +135,12 @@ def _model(empty: bool) -> str:
 
 
 def build_environment(
-    *, empty: bool = False, layout: int | None = None, seed=None, episode_steps: int = 200, terminate_on_collision: bool = False
+    *,
+    empty: bool = False,
+    layout: int | None = None,
+    seed=None,
+    episode_steps: int = 200,
+    terminate_on_collision: bool = False,
 ) -> control.Environment:
     """The dm_control environment of ``point_circle``.
 
@@ -156,7 +161,7 @@ def build_environment(
     """
     physics = dm_mujoco.Physics.from_xml_string(_model(empty))
     task = PointCircle(
-        empty=empty, layout=layout, episode_steps=episode_steps, terminate_on_collision=terminate_on_collision, random=seed
+        empty=empty, layout=layout, terminate_on_collision=terminate_on_collision, random=seed
     )
     return control.Environment(physics, task, time_limit=(episode_steps - 0.5) * task.dt, n_sub_steps=2)
 

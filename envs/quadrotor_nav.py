@@ -77,7 +77,12 @@ class QuadrotorNav(AerialTask):
 
 
 def build_environment(
-    *, empty: bool = False, layout: int | None = None, seed=None, episode_steps: int = 200, terminate_on_collision: bool = True
+    *,
+    empty: bool = False,
+    layout: int | None = None,
+    seed=None,
+    episode_steps: int = 200,
+    terminate_on_collision: bool = True,
 ) -> control.Environment:
     """The dm_control environment of ``quadrotor_nav``.
 
@@ -98,7 +103,7 @@ def build_environment(
     """
     xml = aerial_model("quadrotor_nav", empty, _N_PILLARS, _N_BOXES, QuadrotorNav.robot_radius, mass=1.0, n_rotors=4)
     task = QuadrotorNav(
-        empty=empty, layout=layout, episode_steps=episode_steps, terminate_on_collision=terminate_on_collision, random=seed
+        empty=empty, layout=layout, terminate_on_collision=terminate_on_collision, random=seed
     )
     return control.Environment(
         dm_mujoco.Physics.from_xml_string(xml), task, time_limit=(episode_steps - 0.5) * task.dt, n_sub_steps=5
@@ -108,5 +113,9 @@ def build_environment(
 def safety_info() -> SafetyInfo:
     """The :class:`SafetyInfo` of ``quadrotor_nav``."""
     return QuadrotorNav.safety_info(
-        n_brk=10, n_plan=11, braking_action=np.zeros(3), braking_policy=functools.partial(zero_command, action_dim=3), stop_tolerance=0.05
+        n_brk=10,
+        n_plan=11,
+        braking_action=np.zeros(3),
+        braking_policy=functools.partial(zero_command, action_dim=3),
+        stop_tolerance=0.05,
     )

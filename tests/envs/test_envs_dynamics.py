@@ -158,7 +158,8 @@ def test_braking_policy_stops_within_n_brk(name):
         physics = env.physics
         if name == "diffdrive_nav":
             heading = physics.data.qpos[2]
-            place_robot(env, np.zeros(2), velocity=[velocity[0] * np.cos(heading), velocity[0] * np.sin(heading), velocity[1]])
+            planar = [velocity[0] * np.cos(heading), velocity[0] * np.sin(heading), velocity[1]]
+            place_robot(env, np.zeros(2), velocity=planar)
         else:
             place_robot(env, physics.data.qpos[: info.obstacle_dim].copy(), velocity=velocity)
         state = torch.as_tensor(env.task.state(physics), dtype=torch.float32)

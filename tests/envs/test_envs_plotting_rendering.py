@@ -75,7 +75,8 @@ def test_render_rgb(name):
 
 @needs_gl
 def test_from_pixels():
-    env = envs.make("diffdrive_nav", seed=0, from_pixels=True, pixels_only=False, render_kwargs={"height": 32, "width": 40})
+    size = {"height": 32, "width": 40}
+    env = envs.make("diffdrive_nav", seed=0, from_pixels=True, pixels_only=False, render_kwargs=size)
     td = env.rollout(2)
     assert td["next", "pixels"].shape == (2, 32, 40, 3)
     assert td["next", "pixels"].dtype == torch.uint8
