@@ -123,5 +123,6 @@ def stack_sets(items):
     """Stack single sets of one kind and equal sizes into a ``[N]`` batch."""
     first = items[0]
     if isinstance(first, ConstrainedZonotope):
-        return ConstrainedZonotope(*(torch.stack([getattr(s, k) for s in items]) for k in ("center", "generators", "A", "b")))
+        keys = ("center", "generators", "A", "b")
+        return ConstrainedZonotope(*(torch.stack([getattr(s, k) for s in items]) for k in keys))
     return Zonotope(torch.stack([s.center for s in items]), torch.stack([s.generators for s in items]))

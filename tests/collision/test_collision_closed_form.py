@@ -107,7 +107,8 @@ def test_intersection_truth_by_sampling(n):
 def test_gradients_match_finite_differences(n):
     p1, p2 = SIZES[n]
     sets, obstacles = random_zonotope_pairs(seed=30 + n, n=n, num=6, p1=p1, p2=p2)
-    inputs = [t.clone().requires_grad_() for t in (sets.center, sets.generators, obstacles.center, obstacles.generators)]
+    tensors = (sets.center, sets.generators, obstacles.center, obstacles.generators)
+    inputs = [t.clone().requires_grad_() for t in tensors]
 
     def value(c1, g1, c2, g2):
         return collision_value(Zonotope(c1, g1), Zonotope(c2, g2), backend="closed_form")
@@ -134,7 +135,8 @@ def test_checker_broadcasts_steps_against_obstacles(n):
     checker = ZonotopeCollisionChecker(g_sets, g_obs)
     result = checker.check(c_sets, c_obs)
     assert result.value.shape == (B, H, K) and result.ok.all()
-    reference = check_collision(Zonotope(c_sets, g_sets.expand(B, H, 1, n, p1)), Zonotope(c_obs, g_obs.expand(B, 1, K, n, n)))
+    reference = check_collision(Zonotope(c_sets, g_sets.expand(B, H, 1, n, p1)),
+                                Zonotope(c_obs, g_obs.expand(B, 1, K, n, n)))
     torch.testing.assert_close(result.value, reference.value, rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(result.clearance, reference.clearance, rtol=1e-12, atol=1e-12)
 
@@ -158,7 +160,8 @@ def test_clearance_is_depth_inside_and_a_lower_bound_outside(n):
     for i in torch.nonzero(value < 1).squeeze(-1).tolist():
         depth = -float(clear[i])
         # moving the obstacle by less than the depth in any direction keeps the contact ...
-        moved = Zonotope(sets.center[i] + offsets[i] + (depth - 1e-7) * directions, obstacles.generators[i].expand(200, n, p2))
+        moved = Zonotope(sets.center[i] + offsets[i] + (depth - 1e-7) * directions,
+                         obstacles.generators[i].expand(200, n, p2))
         assert (collision_value(sets[i], moved) <= 1).all()
         # ... and moving it just past the depth along the deepest facet normal separates
         scores = (table.normals[i] @ offsets[i]).abs() - table.supports[i]

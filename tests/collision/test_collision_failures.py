@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from collision_support import random_polytope, random_zonotope_pairs
+from collision_support import random_polytope, random_zonotope_pairs, stack_sets
 
 from torchrl_brsl.collision import (
     CollisionStatus,
@@ -61,8 +61,7 @@ def test_empty_and_infeasible_obstacles_are_unsafe():
                                        torch.ones(1, dtype=F64))
     items = [random_polytope(gen, 2, m=2).translate(torch.tensor([7.0, 0.0], dtype=F64)), empty, inconsistent]
     p, nc = max(o.n_generators for o in items), max(o.n_constraints for o in items)
-    items = [o.pad(p, nc) for o in items]
-    obstacles = ConstrainedZonotope(*(torch.stack([getattr(o, k) for o in items]) for k in ("center", "generators", "A", "b")))
+    obstacles = stack_sets([o.pad(p, nc) for o in items])
     result = check_collision(far, obstacles)
     assert result.reason_names() == ["OK", "EMPTY_SET", "INFEASIBLE"]
     assert result.value[0] > 1 and (result.value[1:] == 0).all()

@@ -17,7 +17,7 @@ from collision_support import (
 )
 
 from torchrl_brsl.collision import check_collision, clearance, collision_value, solve_gauge
-from torchrl_brsl.collision.lp import distance_layer, gauge_layer
+from torchrl_brsl.collision.lp import SOLVER_ARGS, distance_layer, gauge_layer
 from torchrl_brsl.sets import ConstrainedZonotope, Zonotope
 
 
@@ -63,7 +63,7 @@ def test_common_point_from_the_lp_solution(n):
     value = collision_value(sets, obstacles)
     for i in torch.nonzero(value <= 1).squeeze(-1).tolist():
         A, b = intersection_program(sets[i], obstacles[i])
-        v, z = gauge_layer(*A.shape)(torch.from_numpy(A), torch.from_numpy(b), solver_args={"solve_method": "Clarabel"})
+        v, z = gauge_layer(*A.shape)(torch.from_numpy(A), torch.from_numpy(b), solver_args=SOLVER_ARGS)
         point = sets.center[i] + sets.generators[i] @ z[: sets.n_generators]
         assert sets[i].contains(point, tol=1e-6) and obstacles[i].contains(point, tol=1e-6)
     directions = np.random.default_rng(n).standard_normal((24, n))

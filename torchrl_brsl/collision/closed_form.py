@@ -184,7 +184,8 @@ class ZonotopeCollisionChecker:
         if n not in CLOSED_FORM_DIMS:
             raise ValueError(f"`set_generators` must be [..., n, p1] with n in {CLOSED_FORM_DIMS}, got n={n}")
         if g2.shape[-2] != n:
-            raise ValueError(f"`obstacle_generators` must be [..., {n}, p2] like `set_generators`, got {tuple(g2.shape)}")
+            raise ValueError(
+                f"`obstacle_generators` must be [..., {n}, p2] like `set_generators`, got {tuple(g2.shape)}")
         batch = _broadcast("obstacle_generators", g2.shape[:-2], g1.shape[:-2])
         generators = torch.cat((g1.expand(*batch, *g1.shape[-2:]), g2.expand(*batch, *g2.shape[-2:])), dim=-1)
         if not bool(is_full_dimensional(generators).all()):
@@ -256,7 +257,8 @@ def _broadcast(name: str, shape, batch) -> torch.Size:
     try:
         return torch.broadcast_shapes(torch.Size(shape), torch.Size(batch))
     except RuntimeError as err:
-        raise ValueError(f"`{name}` has batch shape {tuple(shape)}, which does not broadcast with {tuple(batch)}") from err
+        raise ValueError(
+            f"`{name}` has batch shape {tuple(shape)}, which does not broadcast with {tuple(batch)}") from err
 
 
 __all__ = [

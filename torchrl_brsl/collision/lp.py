@@ -201,7 +201,10 @@ def _solve(layer: CvxpyLayer, params: tuple[Tensor, ...], z_size: int, solver_ar
 
 
 def _satisfies(A: Tensor, b: Tensor, z: Tensor, rtol: float = FEASIBILITY_RTOL) -> Tensor:
-    """Whether ``A z = b`` holds to relative tolerance ``rtol``; ``A [rows, m, p]``, ``b [rows, m]``, ``z [rows, p]``."""
+    """Whether ``A z = b`` holds to relative tolerance ``rtol``.
+
+    ``A`` is ``[rows, m, p]``, ``b`` ``[rows, m]`` and ``z`` ``[rows, p]``; returns bool ``[rows]``.
+    """
     if A.shape[-2] == 0:
         return torch.ones(A.shape[0], dtype=torch.bool, device=A.device)
     residual = ((A @ z.unsqueeze(-1)).squeeze(-1) - b).abs().amax(-1)
