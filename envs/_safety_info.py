@@ -8,12 +8,12 @@ import torch
 from torch import Tensor
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class SafetyInfo:
     """Machine-readable description of a task for the safety layer.
 
     Nothing here describes the dynamics: the layer learns those from offline data.
-    All tensors are ``float32`` on the CPU.
+    All tensors are ``float32`` on the CPU. Instances compare by identity.
 
     Attributes:
         name: the task name accepted by :func:`envs.make`.

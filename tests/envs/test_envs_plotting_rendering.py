@@ -51,7 +51,8 @@ def test_plot_topdown_writes_a_figure(name, tmp_path):
     info = envs.safety_info(name)
     sets = (td["next", "state"][:, : info.obstacle_dim], 0.05 * torch.randn(10, info.obstacle_dim, 4))
     ax = envs.plot_topdown(td, path=tmp_path / "rollout.png", sets=sets, layout=env.layout)
-    ax_layout = envs.plot_topdown(env.layout, path=tmp_path / "layout.png")
+    as_mapping = {"center": sets[0], "generators": sets[1]}
+    ax_layout = envs.plot_topdown(env.layout, path=tmp_path / "layout.png", sets=as_mapping)
     for path in (tmp_path / "rollout.png", tmp_path / "layout.png"):
         assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
         assert path.stat().st_size > 5000
@@ -59,7 +60,7 @@ def test_plot_topdown_writes_a_figure(name, tmp_path):
     n_obstacles = int(td[0]["obstacles", "mask"].sum()) - (2 if info.obstacle_dim == 3 else 0)
     assert len(ax.patches) >= 2 * n_obstacles + 10 + len(env.layout.goals)
     assert len(ax.lines[-1].get_xdata()) == 11  # 10 states + the final next state
-    assert len(ax_layout.patches) >= 2 * n_obstacles
+    assert len(ax_layout.patches) >= 2 * n_obstacles + 10
 
 
 @needs_gl

@@ -108,3 +108,15 @@ def test_observation_entries_are_copies(name):
     td = env.step(td.set("action", envs.safety_info(name).braking_action))
     assert torch.equal(td["next", "obstacles", "center"], center)
     assert torch.equal(td["next", "obstacles", "mask"], mask)
+
+
+def test_batched_serial_env():
+    import functools
+
+    from torchrl.envs import SerialEnv
+
+    env = SerialEnv(2, [functools.partial(envs.make, "diffdrive_nav", seed=s) for s in (0, 1)])
+    check_env_specs(env)
+    td = env.rollout(3)
+    assert td["next", "obstacles", "generators"].shape == (2, 3, 12, 2, 6)
+    assert not torch.equal(td["obstacles", "center"][0], td["obstacles", "center"][1])
