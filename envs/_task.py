@@ -1,7 +1,7 @@
 """Episode logic shared by the four tasks (a dm_control ``base.Task`` subclass).
 
 Subclasses supply the robot: how an action drives the physics, how state-space noise
-is written back into the physics, what the state and the agent observation are, the
+is written back into the physics, what the state and the policy observation are, the
 layout sampler and the reward. This class supplies layouts and seeding, process
 noise, collision detection from MuJoCo contacts, the data region of the empty
 variant and the observation dictionary read by :class:`envs._wrapper.SafetyTaskEnv`.
@@ -92,7 +92,7 @@ class SafetyTask(base.Task):
         """The robot state ``[n]`` used by reachability (position dims first)."""
         raise NotImplementedError
 
-    def _agent_observation(self, physics) -> np.ndarray:
+    def _policy_observation(self, physics) -> np.ndarray:
         raise NotImplementedError
 
     def _speed(self, physics) -> float:
@@ -170,7 +170,7 @@ class SafetyTask(base.Task):
     def get_observation(self, physics):
         center, generators, mask = self._obstacle_arrays
         return collections.OrderedDict(
-            observation=self._agent_observation(physics),
+            observation=self._policy_observation(physics),
             state=self.state(physics),
             obstacles_center=center,
             obstacles_generators=generators,
@@ -187,7 +187,7 @@ class SafetyTask(base.Task):
             return 1.0
         return None
 
-    # ------------------------------------------------------------------ helpers
+    # ------------------------------------------------------------------ contacts, zonotopes, SafetyInfo
     def _in_contact(self, physics) -> bool:
         """Whether any robot geom touches an obstacle geom (MuJoCo contacts)."""
         data = physics.data

@@ -134,7 +134,7 @@ class DiffDriveNav(GoalTask):
         cos, sin = np.cos(heading), np.sin(heading)
         return np.array([x, y, cos, sin, cos * vx + sin * vy, turn_rate])
 
-    def _agent_observation(self, physics):
+    def _policy_observation(self, physics):
         x, y, heading = physics.data.qpos
         ranges = self._lidar.scan(physics, np.array([x, y, _ROBOT_Z]), heading)
         offset = self.current_goal() - np.array([x, y])

@@ -107,7 +107,7 @@ class HexarotorWind(AerialTask):
         super()._apply_action(action, physics)
         physics.data.xfrc_applied[self._body, :3] = DRAG * (self.wind - physics.data.qvel[:3])
 
-    def _agent_observation(self, physics):
+    def _policy_observation(self, physics):
         goals = self.layout.goals
         index = min(self.goal_index, N_CHECKPOINTS - 1)
         following = goals[index + 1] - goals[index] if index + 1 < N_CHECKPOINTS else np.zeros(3)

@@ -101,7 +101,7 @@ class PointCircle(SafetyTask):
     def state(self, physics):
         return np.concatenate([physics.data.qpos[:2], physics.data.qvel[:2]])
 
-    def _agent_observation(self, physics):
+    def _policy_observation(self, physics):
         position = physics.data.qpos[:2]
         return np.concatenate([position, physics.data.qvel[:2], [np.linalg.norm(position) - PATH_RADIUS]])
 

@@ -70,7 +70,7 @@ class QuadrotorNav(AerialTask):
             extent=(-half, half, -half, half),
         )
 
-    def _agent_observation(self, physics):
+    def _policy_observation(self, physics):
         return np.concatenate(
             [self._lidar_scan(physics), self.current_goal() - physics.data.qpos[:3], physics.data.qvel[:3]]
         )

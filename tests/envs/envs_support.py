@@ -1,4 +1,4 @@
-"""Helpers shared by the tests of ``envs``: zonotope membership and robot placement."""
+"""Zonotope membership and robot placement shared by the tests of ``envs``."""
 from __future__ import annotations
 
 import itertools
