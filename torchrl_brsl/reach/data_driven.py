@@ -147,6 +147,28 @@ class DataDrivenReach(nn.Module):
         )
         return cls(params, fixed, delta, max_generators)
 
+    @classmethod
+    def from_data(cls, data, noise: Zonotope, **kwargs) -> DataDrivenReach:
+        """Fit from a TensorDict with ``x_minus``, ``x_plus``, ``u_minus`` (see
+        :func:`collect_offline_data`); ``kwargs`` go to :meth:`fit`."""
+        return cls.fit(data["x_minus"], data["x_plus"], data["u_minus"], noise, **kwargs)
+
+    @classmethod
+    def from_env(cls, env, noise: Zonotope, steps: int = 500, *, state_key="state", action_key="action",
+                 progress: bool = False, **kwargs) -> DataDrivenReach:
+        """Collect ``steps`` random-input transitions in ``env`` (an empty copy of the task) and fit.
+
+        Examples:
+            >>> info = envs.safety_info("diffdrive_nav")
+            >>> W = Zonotope(info.noise_center, info.noise_generators)
+            >>> reach = DataDrivenReach.from_env(envs.make("diffdrive_nav", empty=True), W,
+            ...                                  translation_invariant_dims=info.position_dims)
+        """
+        from torchrl_brsl.reach.offline import collect_offline_data
+
+        data = collect_offline_data(env, steps, state_key=state_key, action_key=action_key, progress=progress)
+        return cls.from_data(data, noise, **kwargs)
+
     # ----------------------------------------------------------------- properties
     @property
     def state_dim(self) -> int:

@@ -1,0 +1,66 @@
+"""Offline data for data-driven reachability: random inputs in an empty copy of the task."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+from tensordict import TensorDict
+from tensordict.utils import NestedKey
+from torchrl.envs import EnvBase
+from tqdm.auto import tqdm
+
+
+def collect_offline_data(env: EnvBase, steps: int = 500, *, state_key: NestedKey = "state",
+                         action_key: NestedKey = "action", policy=None, progress: bool = False) -> TensorDict:
+    """Collect ``steps`` transitions of random inputs (paper Sec. IV "Setup").
+
+    The robot is driven by uniformly random actions (or ``policy``) in an obstacle-free
+    copy of the task; whenever the env ends an episode (e.g. the robot left the data
+    region) it is reset and collection continues. Only transitions within an episode are kept.
+
+    Args:
+        env: an unbatched TorchRL env (typically the task's empty variant).
+        steps: number of transitions to collect.
+        state_key: where the robot state is.
+        action_key: the action entry.
+        policy: optional ``TensorDict -> TensorDict`` module writing ``action_key``; default
+            ``env.rand_action``.
+        progress: show a progress bar.
+
+    Returns:
+        A TensorDict of batch ``[steps]`` with ``x_minus``, ``x_plus`` (``[steps, n]``) and
+        ``u_minus`` (``[steps, m]``), in float64.
+
+    Examples:
+        >>> data = collect_offline_data(envs.make("diffdrive_nav", empty=True), steps=500)
+        >>> data["x_minus"].shape
+        torch.Size([500, 6])
+    """
+    if steps < 1:
+        raise ValueError(f"`steps` must be positive, got {steps}")
+    if env.batch_size != torch.Size([]):
+        raise ValueError(f"`env` must be unbatched, got batch size {tuple(env.batch_size)}")
+    x_minus, x_plus, u_minus = [], [], []
+    td = env.reset()
+    bar = tqdm(total=steps, desc="offline data", disable=not progress)
+    while len(x_minus) < steps:
+        td = policy(td) if policy is not None else env.rand_action(td)
+        td = env.step(td)
+        x_minus.append(td.get(state_key))
+        u_minus.append(td.get(action_key))
+        x_plus.append(td.get(("next", state_key)))
+        bar.update(1)
+        td = env.step_mdp(td) if not bool(td.get(("next", "done")).any()) else env.reset()
+    bar.close()
+    stack = lambda items: torch.stack(items).to(torch.float64)  # noqa: E731
+    return TensorDict(x_minus=stack(x_minus), x_plus=stack(x_plus), u_minus=stack(u_minus), batch_size=[steps])
+
+
+def save_offline_data(data: TensorDict, path: str | Path) -> None:
+    """Write offline data to ``path`` (a directory, memory-mapped TensorDict)."""
+    data.memmap(str(path))
+
+
+def load_offline_data(path: str | Path) -> TensorDict:
+    """Read data written by :func:`save_offline_data`."""
+    return TensorDict.load_memmap(str(path)).to_tensordict()

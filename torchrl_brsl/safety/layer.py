@@ -1,0 +1,300 @@
+"""``BRSLSafetyLayer``: the TorchRL transform that makes every executed action safe."""
+from __future__ import annotations
+
+import time
+from typing import Sequence
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.utils import NestedKey
+from torch import Tensor
+from torchrl.data import Bounded, Composite, Unbounded
+from torchrl.envs.transforms import Transform
+
+from torchrl_brsl.reach import DataDrivenReach
+from torchrl_brsl.safety.adjust import GradientAdjuster
+from torchrl_brsl.safety.failsafe import Failsafe
+from torchrl_brsl.safety.plan_check import PlanChecker
+
+DIAGNOSTICS = {
+    "intervened": torch.bool,  # the proposal was not executed as proposed
+    "failsafe": torch.bool,  # no safe plan found: the previous safe plan continued
+    "invalid_input": torch.bool,  # NaN/inf in the state, proposal or obstacles
+    "min_collision_value": torch.float64,  # min v* of the (adjusted) proposal's sets (inf: no obstacle)
+    "adjust_iterations": torch.int64,
+    "compute_time": torch.float64,  # seconds spent in the layer this step
+}
+
+
+class BRSLSafetyLayer(Transform):
+    """Black-box Reachability-based Safety Layer (Selim et al., 2022) as a TorchRL transform.
+
+    Append it to any env whose TensorDict carries the robot ``state`` and the ``obstacles``
+    (a padded batch of zonotopes: ``center [..., K, d]``, ``generators [..., K, d, p]``,
+    ``mask [..., K]``). At every step it reads the proposal, either a ``plan``
+    ``[..., n_plan, m]`` written by a planner or a plain ``action`` ``[..., m]`` (a plan of one
+    action), completes it with the braking failsafe up to ``T = n_plan + n_brk`` steps, and
+    computes the data-driven reachable sets of that sequence from the measured state. If any
+    set meets an obstacle or the last set is not stopped, the plan is adjusted by projected
+    gradient on the collision values. An accepted plan becomes the new safe plan; otherwise
+    the previous safe plan continues, shifted by one step (at episode start: stay stopped).
+    Only the first action of the safe plan reaches the robot.
+
+    Safety (paper Theorem 1): every executed action begins a sequence whose reachable sets,
+    braking tail included, were verified collision-free and end stopped; so under the
+    assumptions of :class:`DataDrivenReach` and paper Assumption 1 the robot never collides,
+    whatever the policy proposed. NaN/inf inputs never reach the robot: the previous safe
+    plan continues and ``invalid_input`` is flagged.
+
+    Keys written. TorchRL's collector stores the root TensorDict *before* this transform's
+    inverse pass, so the executed action and diagnostics are written to the ``"next"``
+    TensorDict (and at reset): ``safe_action_key`` ``[..., m]`` (the action sent to the
+    robot), ``safe_plan_key`` ``[..., T, m]`` (per-env state, also in ``full_state_spec``;
+    it is what the next step falls back on), and under ``diagnostics_key`` the entries of
+    :data:`DIAGNOSTICS` ``[..., 1]``. With ``penalty > 0`` the reward is reduced by
+    ``penalty`` whenever the proposal was unsafe (the paper's penalty).
+
+    Batched envs: put the layer outside a ``SerialEnv``/``ParallelEnv`` so one batched
+    computation serves every env; partial resets only reset the safe plans of the envs
+    being reset.
+
+    Args:
+        reach: the fitted reachability model (float64).
+        failsafe: the braking manoeuvre (:class:`Failsafe`).
+        n_plan: plan length ``n_plan``.
+        stop_dims: state dims that must be ~0 when stopped (velocities).
+        stop_tolerance: bound on ``|stop_dims|`` over the final reachable set.
+        action_low, action_high: ``[m]`` action bounds (default: the parent's action spec).
+        position_dims: state dims of the obstacle space (default: the model's
+            translation-invariant dims).
+        adjuster: a callable like :class:`GradientAdjuster`, or ``None`` to never adjust.
+        penalty: reward penalty for unsafe proposals.
+        set_generators: generator width of the projected reachable sets.
+        margin: sets count as colliding when ``v* <= 1 + margin``.
+        state_key, obstacles_key, plan_key, action_key, safe_action_key, safe_plan_key,
+        diagnostics_key, reward_key: TensorDict keys.
+
+    Examples:
+        >>> reach = DataDrivenReach.from_env(make_env(empty=True), noise=W, steps=500,
+        ...                                  translation_invariant_dims=(0, 1))
+        >>> layer = BRSLSafetyLayer(reach, Failsafe(torch.zeros(2), n_brk=6), n_plan=8,
+        ...                         stop_dims=(3, 4), stop_tolerance=0.05)
+        >>> env = TransformedEnv(make_env(), layer)
+        >>> td = env.rollout(100)  # any policy; td["next", "safe_action"] is what was executed
+    """
+
+    def __init__(self, reach: DataDrivenReach, failsafe: Failsafe, n_plan: int, *, stop_dims: Sequence[int],
+                 stop_tolerance: float, action_low: Tensor | None = None, action_high: Tensor | None = None,
+                 position_dims: Sequence[int] | None = None, adjuster=GradientAdjuster(), penalty: float = 0.0,
+                 set_generators: int | None = None, margin: float = 1e-6,
+                 state_key: NestedKey = "state", obstacles_key: NestedKey = "obstacles", plan_key: NestedKey = "plan",
+                 action_key: NestedKey = "action", safe_action_key: NestedKey = "safe_action",
+                 safe_plan_key: NestedKey = "safe_plan", diagnostics_key: NestedKey = "brsl",
+                 reward_key: NestedKey = "reward"):
+        super().__init__(in_keys=[], out_keys=[])
+        if not isinstance(reach, DataDrivenReach):
+            raise ValueError(f"`reach` must be a DataDrivenReach, got {type(reach).__name__}")
+        if not isinstance(failsafe, Failsafe):
+            raise ValueError(f"`failsafe` must be a Failsafe, got {type(failsafe).__name__}")
+        if int(n_plan) < 1:
+            raise ValueError(f"`n_plan` must be a positive integer, got {n_plan}")
+        if failsafe.hold_action.shape[-1] != reach.action_dim:
+            raise ValueError(f"`failsafe.hold_action` has {failsafe.hold_action.shape[-1]} entries, the model "
+                             f"expects {reach.action_dim} actions")
+        self.reach = reach
+        self.failsafe = failsafe
+        self.n_plan = int(n_plan)
+        self.horizon = self.n_plan + int(failsafe.n_brk)
+        self.stop_dims = list(stop_dims)
+        self.stop_tolerance = float(stop_tolerance)
+        self.position_dims = position_dims
+        self.adjuster = adjuster
+        self.penalty = float(penalty)
+        self.set_generators = set_generators
+        self.margin = float(margin)
+        self.state_key, self.obstacles_key, self.plan_key = state_key, obstacles_key, plan_key
+        self.action_key, self.safe_action_key, self.safe_plan_key = action_key, safe_action_key, safe_plan_key
+        self.diagnostics_key, self.reward_key = diagnostics_key, reward_key
+        self._bounds = (action_low, action_high)
+        self._checker: PlanChecker | None = None
+
+    # ----------------------------------------------------------------- set-up
+    @property
+    def checker(self) -> PlanChecker:
+        """The plan verifier (built on first use, when the action bounds are known)."""
+        if self._checker is None:
+            low, high = self._bounds
+            if low is None or high is None:
+                spec = self.parent.full_action_spec[self.action_key] if self.parent is not None else None
+                if spec is None or not hasattr(spec.space, "low"):
+                    raise ValueError("`action_low`/`action_high` must be given when the env has no bounded action spec")
+                low, high = spec.space.low.reshape(-1, spec.shape[-1])[0], spec.space.high.reshape(-1, spec.shape[-1])[0]
+            dtype = self.reach.state_matrix.dtype
+            self._checker = PlanChecker(
+                self.reach, self.failsafe, self.horizon, stop_dims=self.stop_dims, stop_tolerance=self.stop_tolerance,
+                action_low=torch.as_tensor(low, dtype=dtype), action_high=torch.as_tensor(high, dtype=dtype),
+                position_dims=self.position_dims, set_generators=self.set_generators, margin=self.margin,
+                action_dtype=self._action_dtype())
+        return self._checker
+
+    def _hold_plan(self, batch: torch.Size, like: Tensor) -> Tensor:
+        hold = self.failsafe.hold_action.to(device=like.device, dtype=torch.float64)
+        return hold.expand(*batch, self.horizon, hold.shape[-1]).clone()
+
+    # ----------------------------------------------------------------- specs
+    def transform_observation_spec(self, observation_spec: Composite) -> Composite:
+        batch = observation_spec.shape
+        m, device = self.reach.action_dim, observation_spec.device
+        observation_spec[self.safe_plan_key] = Unbounded(shape=(*batch, self.horizon, m), dtype=torch.float64,
+                                                         device=device)
+        observation_spec[self.safe_action_key] = Unbounded(shape=(*batch, m), dtype=self._action_dtype(),
+                                                           device=device)
+        diag = Composite(shape=batch, device=device)
+        for name, dtype in DIAGNOSTICS.items():
+            if dtype is torch.bool:
+                diag[name] = Bounded(low=0, high=1, shape=(*batch, 1), dtype=torch.bool, device=device)
+            else:
+                diag[name] = Unbounded(shape=(*batch, 1), dtype=dtype, device=device)
+        observation_spec[self.diagnostics_key] = diag
+        return observation_spec
+
+    def transform_input_spec(self, input_spec: Composite) -> Composite:
+        if input_spec["full_state_spec"] is None:
+            input_spec["full_state_spec"] = Composite(shape=input_spec.shape, device=input_spec.device)
+        batch, m = input_spec.shape, self.reach.action_dim
+        input_spec["full_state_spec"][self.safe_plan_key] = Unbounded(shape=(*batch, self.horizon, m),
+                                                                      dtype=torch.float64, device=input_spec.device)
+        return input_spec
+
+    def _action_dtype(self) -> torch.dtype:
+        parent = self.parent
+        if parent is None:
+            return torch.get_default_dtype()
+        return parent.full_action_spec[self.action_key].dtype
+
+    # ----------------------------------------------------------------- reset / step
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        batch = tensordict_reset.batch_size
+        state = tensordict_reset.get(self.state_key)
+        fresh = self._hold_plan(batch, state)
+        previous = tensordict.get(self.safe_plan_key, None) if tensordict is not None else None
+        reset = tensordict.get("_reset", None) if tensordict is not None else None
+        if previous is not None and reset is not None:
+            fresh = torch.where(reset.reshape(*batch, 1, 1), fresh, previous.to(fresh))
+        tensordict_reset.set(self.safe_plan_key, fresh)
+        tensordict_reset.set(self.safe_action_key, fresh[..., 0, :].to(self._action_dtype()))
+        for name, dtype in DIAGNOSTICS.items():
+            value = torch.full((*batch, 1), float("inf")) if name == "min_collision_value" else torch.zeros(*batch, 1)
+            tensordict_reset.set((self.diagnostics_key, name), value.to(dtype=dtype, device=state.device))
+        return tensordict_reset
+
+    def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
+        start = time.perf_counter()
+        batch = tensordict.batch_size
+        state = tensordict.get(self.state_key)
+        action = tensordict.get(self.action_key)
+        safe_plan = tensordict.get(self.safe_plan_key, None)
+        if safe_plan is None:
+            safe_plan = self._hold_plan(batch, state)
+        proposal = tensordict.get(self.plan_key, None)
+        if proposal is None:
+            proposal = action.unsqueeze(-2)
+        obstacles = tensordict.get(self.obstacles_key)
+        out = self._safe_step(
+            state.reshape(-1, state.shape[-1]), proposal.reshape(-1, *proposal.shape[-2:]),
+            safe_plan.reshape(-1, *safe_plan.shape[-2:]), obstacles.get("center"), obstacles.get("generators"),
+            obstacles.get("mask"), start)
+        executed, new_safe_plan, diagnostics = out
+        executed = executed.reshape(*batch, -1)
+        tensordict.set(self.action_key, executed.to(action.dtype))
+        tensordict.set(self.safe_plan_key, new_safe_plan.reshape(*batch, *new_safe_plan.shape[-2:]))
+        for name, value in diagnostics.items():
+            tensordict.set((self.diagnostics_key, name), value.reshape(*batch, 1).to(DIAGNOSTICS[name]))
+        tensordict.set((self.diagnostics_key, "compute_time"),
+                       torch.full((*batch, 1), time.perf_counter() - start, dtype=torch.float64))
+        return tensordict
+
+    def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
+        next_tensordict.set(self.safe_action_key, tensordict.get(self.action_key))
+        next_tensordict.set(self.safe_plan_key, tensordict.get(self.safe_plan_key))
+        next_tensordict.set(self.diagnostics_key, tensordict.get(self.diagnostics_key).clone())
+        if self.penalty:
+            unsafe = tensordict.get((self.diagnostics_key, "intervened"))
+            reward = next_tensordict.get(self.reward_key)
+            next_tensordict.set(self.reward_key, reward - self.penalty * unsafe.to(reward.dtype).reshape(reward.shape))
+        return next_tensordict
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        raise RuntimeError(f"{type(self).__name__} acts inside an environment's step: append it to a TransformedEnv.")
+
+    # ----------------------------------------------------------------- the safety logic
+    def _safe_step(self, state: Tensor, proposal: Tensor, safe_plan: Tensor, obstacle_centers: Tensor,
+                   obstacle_generators: Tensor, obstacle_mask: Tensor, start: float):
+        """One batched safety decision over ``B`` envs (flattened batch).
+
+        Returns ``(executed [B, m], next safe plan [B, T, m], diagnostics {name: [B]})``.
+        """
+        checker = self.checker
+        dtype = self.reach.state_matrix.dtype
+        n_envs = state.shape[0]
+        obstacle_centers = self._obstacle_tensor("center", obstacle_centers, n_envs, 2).to(dtype)
+        obstacle_generators = self._obstacle_tensor("generators", obstacle_generators, n_envs, 3).to(dtype)
+        obstacle_mask = self._obstacle_tensor("mask", obstacle_mask, n_envs, 1).bool()
+        if proposal.shape[-2] > self.n_plan:
+            raise ValueError(f"`{self.plan_key}` has {proposal.shape[-2]} steps, more than n_plan={self.n_plan}")
+        x0 = state.to(dtype)
+        plan = torch.minimum(torch.maximum(proposal.to(dtype), checker.action_low), checker.action_high)
+        valid = (torch.isfinite(x0).all(-1) & torch.isfinite(plan).flatten(1).all(-1)
+                 & (torch.isfinite(obstacle_centers).flatten(1).all(-1) | ~obstacle_mask.any(-1))
+                 & (torch.isfinite(obstacle_generators).flatten(1).all(-1) | ~obstacle_mask.any(-1)))
+        x0 = torch.where(valid.unsqueeze(-1), x0, torch.zeros_like(x0))
+        plan = torch.where(valid.view(-1, 1, 1), plan, torch.zeros_like(plan))
+        obstacle_centers = torch.nan_to_num(obstacle_centers)
+        obstacle_generators = torch.nan_to_num(obstacle_generators)
+
+        with torch.no_grad():
+            evaluation = checker.evaluate(x0, plan, obstacle_centers, obstacle_generators, obstacle_mask)
+        proposal_safe = evaluation.safe & valid
+        accepted = proposal_safe.clone()
+        actions, values = evaluation.actions, evaluation.values
+        iterations = torch.zeros(n_envs, dtype=torch.long, device=state.device)
+        todo = valid & ~proposal_safe
+        if self.adjuster is not None and bool(todo.any()):
+            idx = todo.nonzero().squeeze(-1)
+            adjusted = self.adjuster(checker, x0[idx], plan[idx], obstacle_centers[idx], obstacle_generators[idx],
+                                     obstacle_mask[idx], start=start)
+            accepted[idx] = adjusted.evaluation.safe
+            actions = actions.clone()
+            values = values.clone()
+            actions[idx] = adjusted.evaluation.actions
+            values[idx] = adjusted.evaluation.values
+            iterations[idx] = adjusted.iterations
+
+        fallback = safe_plan.to(dtype)
+        chosen = torch.where(accepted.view(-1, 1, 1), actions, fallback)
+        executed = chosen[:, 0]
+        hold = self.failsafe.hold_action.to(chosen).expand(n_envs, 1, -1)
+        next_safe_plan = torch.cat((chosen[:, 1:], hold), dim=1)
+        diagnostics = {
+            "intervened": ~proposal_safe,
+            "failsafe": ~accepted,
+            "invalid_input": ~valid,
+            "min_collision_value": values.flatten(1).amin(-1),
+            "adjust_iterations": iterations,
+        }
+        return executed, next_safe_plan, diagnostics
+
+    def _obstacle_tensor(self, name: str, value: Tensor | None, n_envs: int, trailing: int) -> Tensor:
+        key = f"{self.obstacles_key}/{name}" if isinstance(self.obstacles_key, str) else (*self.obstacles_key, name)
+        if value is None:
+            raise ValueError(f"missing obstacle entry `{key}`")
+        d = len(self.checker.position_dims)
+        try:
+            value = value.reshape(n_envs, *value.shape[-trailing:])
+        except RuntimeError as err:
+            raise ValueError(f"`{key}` of shape {tuple(value.shape)} does not match the env batch") from err
+        if name == "center" and value.shape[-1] != d:
+            raise ValueError(f"`{key}` must be [..., K, {d}] (the obstacle space), got {tuple(value.shape)}")
+        if name == "generators" and value.shape[-2] != d:
+            raise ValueError(f"`{key}` must be [..., K, {d}, p], got {tuple(value.shape)}")
+        return value
