@@ -63,7 +63,8 @@ class BRSLSafetyLayer(Transform):
         failsafe: the braking manoeuvre (:class:`Failsafe`).
         n_plan: plan length ``n_plan``.
         stop_dims: state dims that must be ~0 when stopped (velocities).
-        stop_tolerance: bound on ``|stop_dims|`` over the final reachable set.
+        stop_tolerance: bound on ``|stop_dims|`` over the final reachable set (a float or one
+            value per stop dim; see :class:`PlanChecker`).
         action_low, action_high: ``[m]`` action bounds (default: the parent's action spec).
         position_dims: state dims of the obstacle space (default: the model's
             translation-invariant dims).
@@ -84,8 +85,8 @@ class BRSLSafetyLayer(Transform):
     """
 
     def __init__(self, reach: DataDrivenReach, failsafe: Failsafe, n_plan: int, *, stop_dims: Sequence[int],
-                 stop_tolerance: float, action_low: Tensor | None = None, action_high: Tensor | None = None,
-                 position_dims: Sequence[int] | None = None, adjuster=GradientAdjuster(), penalty: float = 0.0,
+                 stop_tolerance: float | Sequence[float], action_low: Tensor | None = None,
+                 action_high: Tensor | None = None, position_dims: Sequence[int] | None = None, adjuster=GradientAdjuster(), penalty: float = 0.0,
                  set_generators: int | None = None, margin: float = 1e-6,
                  state_key: NestedKey = "state", obstacles_key: NestedKey = "obstacles", plan_key: NestedKey = "plan",
                  action_key: NestedKey = "action", safe_action_key: NestedKey = "safe_action",
@@ -106,7 +107,7 @@ class BRSLSafetyLayer(Transform):
         self.n_plan = int(n_plan)
         self.horizon = self.n_plan + int(failsafe.n_brk)
         self.stop_dims = list(stop_dims)
-        self.stop_tolerance = float(stop_tolerance)
+        self.stop_tolerance = stop_tolerance
         self.position_dims = position_dims
         self.adjuster = adjuster
         self.penalty = float(penalty)
@@ -117,6 +118,8 @@ class BRSLSafetyLayer(Transform):
         self.diagnostics_key, self.reward_key = diagnostics_key, reward_key
         self._bounds = (action_low, action_high)
         self._checker: PlanChecker | None = None
+        if action_low is not None and action_high is not None:
+            _ = self.checker  # validate the settings now rather than at the first step
 
     # ----------------------------------------------------------------- set-up
     @property
@@ -243,12 +246,13 @@ class BRSLSafetyLayer(Transform):
         if proposal.shape[-2] > self.n_plan:
             raise ValueError(f"`{self.plan_key}` has {proposal.shape[-2]} steps, more than n_plan={self.n_plan}")
         x0 = state.to(dtype)
-        plan = torch.minimum(torch.maximum(proposal.to(dtype), checker.action_low), checker.action_high)
+        plan = proposal.to(dtype)
         valid = (torch.isfinite(x0).all(-1) & torch.isfinite(plan).flatten(1).all(-1)
                  & (torch.isfinite(obstacle_centers).flatten(1).all(-1) | ~obstacle_mask.any(-1))
                  & (torch.isfinite(obstacle_generators).flatten(1).all(-1) | ~obstacle_mask.any(-1)))
         x0 = torch.where(valid.unsqueeze(-1), x0, torch.zeros_like(x0))
         plan = torch.where(valid.view(-1, 1, 1), plan, torch.zeros_like(plan))
+        plan = torch.minimum(torch.maximum(plan, checker.action_low), checker.action_high)
         obstacle_centers = torch.nan_to_num(obstacle_centers)
         obstacle_generators = torch.nan_to_num(obstacle_generators)
 

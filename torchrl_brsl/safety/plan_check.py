@@ -46,7 +46,8 @@ class PlanChecker:
             translation-invariant dims).
         stop_dims: state dims that must be ~0 when stopped (velocities).
         stop_tolerance: the final set's interval on ``stop_dims`` must lie in
-            ``[-stop_tolerance, stop_tolerance]``.
+            ``[-stop_tolerance, stop_tolerance]`` (a float, or one value per stop dim). It must
+            exceed the final set's own radius on those dims, which the error message reports.
         set_generators: width of the projected sets after Girard reduction
             (default ``4 d``).
         margin: a set counts as colliding when ``v* <= 1 + margin``.
@@ -56,7 +57,7 @@ class PlanChecker:
     """
 
     def __init__(self, reach: DataDrivenReach, failsafe: Failsafe, horizon: int, *, stop_dims: Sequence[int],
-                 stop_tolerance: float, action_low: Tensor, action_high: Tensor,
+                 stop_tolerance: float | Sequence[float] | Tensor, action_low: Tensor, action_high: Tensor,
                  position_dims: Sequence[int] | None = None, set_generators: int | None = None,
                  margin: float = 1e-6, action_dtype: torch.dtype = torch.float64):
         self.reach = reach
@@ -75,10 +76,10 @@ class PlanChecker:
         d = len(self.position_dims)
         self.set_generators = reduce_girard(errors[:, self.position_dims], set_generators or 4 * d)  # [T, d, ps]
         self.stop_radius = errors[-1, self.stop_dims].abs().sum(-1)  # [len(stop_dims)]
-        self.stop_tolerance = float(stop_tolerance)
+        self.stop_tolerance = torch.as_tensor(stop_tolerance, dtype=dtype).expand(len(self.stop_dims))
         if self.stop_dims and bool((self.stop_radius >= self.stop_tolerance).any()):
             raise ValueError(
-                f"`stop_tolerance`={stop_tolerance} is below the final reachable set's radius "
+                f"`stop_tolerance`={self.stop_tolerance.tolist()} is not above the final reachable set's radius "
                 f"{self.stop_radius.tolist()} on the stop dims: no plan could ever be accepted. Raise the "
                 "tolerance, shorten the horizon or use tighter offline data.")
         self._obstacle_generators: Tensor | None = None
