@@ -39,6 +39,22 @@ def check_same_dtype_device(**tensors: Tensor) -> None:
             raise ValueError(f"`{name}` is on {tensor.device} but `{first_name}` is on {first.device}")
 
 
+def broadcast_batch(name: str, shape, batch) -> torch.Size:
+    """Broadcast the batch shape of argument ``name`` with a set's ``batch``, or raise ``ValueError``."""
+    try:
+        return torch.broadcast_shapes(torch.Size(shape), torch.Size(batch))
+    except RuntimeError as err:
+        raise ValueError(
+            f"`{name}` has batch shape {tuple(shape)}, which does not broadcast with the set's batch shape {tuple(batch)}"
+        ) from err
+
+
+def check_last_dim(name: str, value: Tensor, n: int) -> None:
+    """Raise ``ValueError`` unless ``value`` is ``[..., n]``."""
+    if value.ndim < 1 or value.shape[-1] != n:
+        raise ValueError(f"`{name}` must have last dimension {n}, got shape {tuple(value.shape)}")
+
+
 def check_dims(name: str, dims, n: int) -> list[int]:
     """Validate a list of dimension indices into an ``n``-dimensional space."""
     dims = [int(d) for d in dims]

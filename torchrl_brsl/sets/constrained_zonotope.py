@@ -5,15 +5,22 @@ from typing import Sequence
 
 import numpy as np
 import torch
-from tensordict import tensorclass
 from torch import Tensor
 
-from torchrl_brsl.sets._checks import check_dims, check_same_dtype_device, check_tensor, default_tol
+from torchrl_brsl.sets._checks import (
+    broadcast_batch,
+    check_dims,
+    check_last_dim,
+    check_same_dtype_device,
+    check_tensor,
+    default_tol,
+)
+from torchrl_brsl.sets._tensorclass import documented_tensorclass
 from torchrl_brsl.sets.lp import gauge_lp, polytope_bounds, support_lp
 from torchrl_brsl.sets.zonotope import Zonotope
 
 
-@tensorclass
+@documented_tensorclass
 class ConstrainedZonotope:
     """A batch of constrained zonotopes (Scott et al., 2016).
 
@@ -107,6 +114,8 @@ class ConstrainedZonotope:
         matrix = check_tensor("matrix", matrix, min_ndim=2)
         if matrix.shape[-1] != self.dim:
             raise ValueError(f"`matrix` has {matrix.shape[-1]} columns but the set is {self.dim}-dimensional")
+        broadcast_batch("matrix", matrix.shape[:-2], self.batch_size)
+        check_same_dtype_device(center=self.center, matrix=matrix)
         g = matrix @ self.generators
         batch = g.shape[:-2]
         return ConstrainedZonotope(
@@ -123,7 +132,7 @@ class ConstrainedZonotope:
         """``Z1 + Z2`` with block-diagonal constraints (batch shapes broadcast)."""
         other = _as_constrained("other", other)
         if other.dim != self.dim:
-            raise ValueError(f"sets must share their dimension, got {self.dim} and {other.dim}")
+            raise ValueError(f"`other` is {other.dim}-dimensional but the set is {self.dim}-dimensional")
         s, o = _broadcast_pair(self, other)
         return ConstrainedZonotope(
             s.center + o.center,
@@ -135,6 +144,8 @@ class ConstrainedZonotope:
     def translate(self, offset: Tensor) -> ConstrainedZonotope:
         """``Z + offset`` for ``offset`` ``[..., n]``."""
         offset = check_tensor("offset", offset, min_ndim=1)
+        check_last_dim("offset", offset, self.dim)
+        broadcast_batch("offset", offset.shape[:-1], self.batch_size)
         center = self.center + offset
         batch = center.shape[:-1]
         return ConstrainedZonotope(
@@ -180,7 +191,7 @@ class ConstrainedZonotope:
         """
         other = _as_constrained("other", other)
         if other.dim != self.dim:
-            raise ValueError(f"sets must share their dimension, got {self.dim} and {other.dim}")
+            raise ValueError(f"`other` is {other.dim}-dimensional but the set is {self.dim}-dimensional")
         s, o = _broadcast_pair(self, other)
         g = torch.cat((s.generators, torch.zeros_like(o.generators)), dim=-1)
         A = torch.cat((_block_diag(s.A, o.A), torch.cat((s.generators, -o.generators), dim=-1)), dim=-2)
@@ -191,34 +202,46 @@ class ConstrainedZonotope:
         """Intersection with ``{x : H x <= h}`` (Raghuraman & Koeln, 2022).
 
         Each row adds one slack generator and one constraint
-        ``H_i G z + d_i/2 s = h_i - H_i c - d_i/2`` with ``d_i = h_i - H_i c + ||H_i G||_1``.
+        ``H_i G z + d_i/2 s = h_i - H_i c - d_i/2`` with
+        ``d_i = max(h_i - H_i c + ||H_i G||_1, 0)``; ``d_i = 0`` (the halfspace misses the
+        set's bounding zonotope) leaves an infeasible constraint, i.e. an empty set.
 
         Args:
-            H: ``[m, n]`` or ``[n]`` (one halfspace).
-            h: ``[m]`` or scalar.
+            H: ``[..., m, n]`` or ``[n]`` (one halfspace); batch dimensions broadcast with the set's.
+            h: ``[..., m]`` or scalar.
         """
         H = check_tensor("H", H, min_ndim=1)
+        if not isinstance(h, Tensor):
+            h = torch.as_tensor(h, dtype=H.dtype, device=H.device)
         h = check_tensor("h", h)
+        check_same_dtype_device(center=self.center, H=H, h=h)
         if H.ndim == 1:
             H, h = H.unsqueeze(0), h.reshape(1)
-        if H.shape[-1] != self.dim or h.shape != H.shape[:-1]:
-            raise ValueError(f"`H` must be [m, {self.dim}] and `h` [m]; got {tuple(H.shape)} and {tuple(h.shape)}")
-        m = H.shape[0]
-        hc = (H @ self.center.unsqueeze(-1)).squeeze(-1)  # [..., m]
-        hg = H @ self.generators  # [..., m, p]
-        d = h - hc + hg.abs().sum(-1)  # [..., m]
-        batch = hc.shape[:-1]
-        g = torch.cat((self.generators, self.generators.new_zeros(*batch, self.dim, m)), dim=-1)
-        A_old = torch.cat((self.A, self.A.new_zeros(*batch, self.n_constraints, m)), dim=-1)
+        if H.shape[-1] != self.dim:
+            raise ValueError(f"`H` must be [..., m, {self.dim}], got {tuple(H.shape)}")
+        if h.shape != H.shape[:-1]:
+            raise ValueError(f"`h` must be [..., m] matching `H` {tuple(H.shape)}; got {tuple(h.shape)}")
+        batch = broadcast_batch("H", H.shape[:-2], self.batch_size)
+        m, n, p, nc = H.shape[-2], self.dim, self.n_generators, self.n_constraints
+        hc = (H @ self.center.unsqueeze(-1)).squeeze(-1).expand(*batch, m)  # [..., m]
+        hg = (H @ self.generators).expand(*batch, m, p)  # [..., m, p]
+        h = h.expand(*batch, m)
+        d = (h - hc + hg.abs().sum(-1)).clamp_min(0)  # [..., m]
+        gens = self.generators.expand(*batch, n, p)
+        g = torch.cat((gens, gens.new_zeros(*batch, n, m)), dim=-1)
+        A = self.A.expand(*batch, nc, p)
+        A_old = torch.cat((A, A.new_zeros(*batch, nc, m)), dim=-1)
         A_new = torch.cat((hg, torch.diag_embed(d / 2)), dim=-1)
-        return ConstrainedZonotope(self.center, g, torch.cat((A_old, A_new), dim=-2),
-                                   torch.cat((self.b, h - hc - d / 2), dim=-1))
+        return ConstrainedZonotope(self.center.expand(*batch, n), g, torch.cat((A_old, A_new), dim=-2),
+                                   torch.cat((self.b.expand(*batch, nc), h - hc - d / 2), dim=-1))
 
     def pad(self, n_generators: int, n_constraints: int) -> ConstrainedZonotope:
         """Append zero generators / zero constraint rows (the set is unchanged)."""
         dp, dc = n_generators - self.n_generators, n_constraints - self.n_constraints
-        if dp < 0 or dc < 0:
-            raise ValueError(f"cannot pad ({self.n_generators}, {self.n_constraints}) down to ({n_generators}, {n_constraints})")
+        if dp < 0:
+            raise ValueError(f"`n_generators`={n_generators} is smaller than the {self.n_generators} generators present")
+        if dc < 0:
+            raise ValueError(f"`n_constraints`={n_constraints} is smaller than the {self.n_constraints} constraints present")
         pad = torch.nn.functional.pad
         return ConstrainedZonotope(self.center, pad(self.generators, (0, dp)), pad(self.A, (0, dp, 0, dc)),
                                    pad(self.b, (0, dc)))
@@ -230,7 +253,7 @@ class ConstrainedZonotope:
         tol = max(default_tol(points.dtype) if tol is None else tol, 1e-7)
         if points.shape[-1] != self.dim:
             raise ValueError(f"`points` must have last dimension {self.dim}, got {tuple(points.shape)}")
-        batch = torch.broadcast_shapes(points.shape[:-1], self.batch_size)
+        batch = broadcast_batch("points", points.shape[:-1], self.batch_size)
         s = self.expand(batch)
         out = [gauge_lp(np.vstack([A, G]), np.concatenate([b, x - c])) <= 1 + tol
                for c, G, A, b, x in _numpy_rows(s, points.expand(*batch, self.dim))]
@@ -269,6 +292,8 @@ class ConstrainedZonotope:
         """Draw every set of the batch, projected onto ``dims``; see :meth:`Zonotope.plot`."""
         from torchrl_brsl.sets.plotting import plot_polygons
 
+        if len(dims) != 2:
+            raise ValueError(f"`dims` must name two coordinates, got {list(dims)}")
         verts = self.project(dims).vertices(n_directions).detach().cpu().reshape(-1, n_directions, 2)
         return plot_polygons([v.numpy() for v in verts], ax=ax, **kwargs)
 
@@ -282,7 +307,7 @@ def _as_constrained(name: str, value) -> ConstrainedZonotope:
 
 
 def _broadcast_pair(a: ConstrainedZonotope, b: ConstrainedZonotope):
-    batch = torch.broadcast_shapes(a.batch_size, b.batch_size)
+    batch = broadcast_batch("other", b.batch_size, a.batch_size)
     return a.expand(batch), b.expand(batch)
 
 
@@ -297,9 +322,11 @@ def _block_diag(x: Tensor, y: Tensor) -> Tensor:
 def _numpy_rows(cz: ConstrainedZonotope, points: Tensor | None = None):
     """Yield ``(c, G, A, b[, x])`` float64 numpy arrays for each batch element."""
     n, p, nc = cz.dim, cz.n_generators, cz.n_constraints
-    arrays = [cz.center.reshape(-1, n), cz.generators.reshape(-1, n, p), cz.A.reshape(-1, nc, p), cz.b.reshape(-1, nc)]
+    rows = cz.batch_size.numel()
+    arrays = [cz.center.reshape(rows, n), cz.generators.reshape(rows, n, p), cz.A.reshape(rows, nc, p),
+              cz.b.reshape(rows, nc)]
     if points is not None:
-        arrays.append(points.reshape(-1, n))
+        arrays.append(points.reshape(rows, n))
     arrays = [a.detach().double().cpu().numpy() for a in arrays]
     return zip(*arrays)
 

@@ -42,7 +42,7 @@ def facet_normals(generators: Tensor) -> Tensor:
         i, j = _pairs(p, generators.device)
         g = generators.transpose(-1, -2)
         return torch.linalg.cross(g[..., i, :], g[..., j, :], dim=-1)
-    raise ValueError(f"closed-form facets exist for 1-, 2- and 3-D sets only, got n={n}")
+    raise ValueError(f"`generators` must be [..., n, p] with n in (1, 2, 3) for closed-form facets, got n={n}")
 
 
 def facet_supports(normals: Tensor, generators: Tensor) -> Tensor:
@@ -92,6 +92,10 @@ def zonotope_gauge(x: Tensor, generators: Tensor) -> Tensor:
         >>> zonotope_gauge(torch.tensor([0.5, -2.0]), G)
         tensor(2.)
     """
+    if generators.ndim < 2:
+        raise ValueError(f"`generators` must be [..., n, p], got shape {tuple(generators.shape)}")
+    if x.ndim < 1 or x.shape[-1] != generators.shape[-2]:
+        raise ValueError(f"`x` must be [..., {generators.shape[-2]}] to match `generators`, got shape {tuple(x.shape)}")
     normals = facet_normals(generators)
     return gauge_from_facets(x, normals, facet_supports(normals, generators))
 

@@ -4,6 +4,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from torchrl_brsl.sets._checks import check_tensor
+
 
 def pad_generators(generators: Tensor, n_generators: int) -> Tensor:
     """Append zero columns so ``generators`` has exactly ``n_generators`` columns.
@@ -15,6 +17,7 @@ def pad_generators(generators: Tensor, n_generators: int) -> Tensor:
     Returns:
         ``[..., n, n_generators]``.
     """
+    generators = check_tensor("generators", generators, min_ndim=2)
     p = generators.shape[-1]
     if p > n_generators:
         raise ValueError(f"`n_generators`={n_generators} is smaller than the {p} generators present")
@@ -43,6 +46,7 @@ def reduce_girard(generators: Tensor, n_generators: int) -> Tensor:
         >>> reduce_girard(G, 6).shape
         torch.Size([4, 2, 6])
     """
+    generators = check_tensor("generators", generators, min_ndim=2)
     n, p = generators.shape[-2], generators.shape[-1]
     if n_generators < n:
         raise ValueError(f"`n_generators`={n_generators} must be at least the dimension n={n}")

@@ -4,16 +4,23 @@ from __future__ import annotations
 from typing import Sequence
 
 import torch
-from tensordict import tensorclass
 from torch import Tensor
 
-from torchrl_brsl.sets._checks import check_dims, check_same_dtype_device, check_tensor, default_tol
-from torchrl_brsl.sets.facets import zonotope_gauge
+from torchrl_brsl.sets._checks import (
+    broadcast_batch,
+    check_dims,
+    check_last_dim,
+    check_same_dtype_device,
+    check_tensor,
+    default_tol,
+)
+from torchrl_brsl.sets._tensorclass import documented_tensorclass
+from torchrl_brsl.sets.facets import facet_normals, facet_supports, gauge_from_facets
 from torchrl_brsl.sets.lp import gauge_lp
 from torchrl_brsl.sets.reduction import pad_generators, reduce_girard
 
 
-@tensorclass
+@documented_tensorclass
 class Zonotope:
     """A batch of zonotopes ``{c + G z : ||z||_inf <= 1}``.
 
@@ -74,11 +81,18 @@ class Zonotope:
         half_extents = check_tensor("half_extents", half_extents, min_ndim=1)
         if bool((half_extents < 0).any()):
             raise ValueError("`half_extents` must be non-negative")
+        n = half_extents.shape[-1]
+        center = check_tensor("center", center, min_ndim=1)
+        check_last_dim("center", center, n)
         generators = torch.diag_embed(half_extents)
         if rotation is not None:
             rotation = check_tensor("rotation", rotation, min_ndim=2)
+            if rotation.shape[-2:] != (n, n):
+                raise ValueError(f"`rotation` must be [..., {n}, {n}], got shape {tuple(rotation.shape)}")
+            broadcast_batch("rotation", rotation.shape[:-2], half_extents.shape[:-1])
+            check_same_dtype_device(half_extents=half_extents, rotation=rotation)
             generators = rotation @ generators
-        center = check_tensor("center", center, min_ndim=1)
+        broadcast_batch("center", center.shape[:-1], generators.shape[:-2])
         center, generators = _broadcast_set(center, generators)
         return cls(center, generators)
 
@@ -111,6 +125,9 @@ class Zonotope:
     def support(self, direction: Tensor) -> Tensor:
         """Support function ``max_{x in Z} d . x`` for ``direction`` ``[..., n]``: ``[...]``."""
         direction = check_tensor("direction", direction, min_ndim=1)
+        check_last_dim("direction", direction, self.dim)
+        broadcast_batch("direction", direction.shape[:-1], self.batch_size)
+        check_same_dtype_device(center=self.center, direction=direction)
         return (direction * self.center).sum(-1) + (direction.unsqueeze(-2) @ self.generators).abs().sum(-1).squeeze(-1)
 
     # ----------------------------------------------------------------- algebra
@@ -119,6 +136,8 @@ class Zonotope:
         matrix = check_tensor("matrix", matrix, min_ndim=2)
         if matrix.shape[-1] != self.dim:
             raise ValueError(f"`matrix` has {matrix.shape[-1]} columns but the set is {self.dim}-dimensional")
+        broadcast_batch("matrix", matrix.shape[:-2], self.batch_size)
+        check_same_dtype_device(center=self.center, matrix=matrix)
         return Zonotope((matrix @ self.center.unsqueeze(-1)).squeeze(-1), matrix @ self.generators)
 
     def __rmatmul__(self, matrix: Tensor) -> Zonotope:
@@ -129,7 +148,7 @@ class Zonotope:
         if not isinstance(other, Zonotope):
             raise ValueError(f"`other` must be a Zonotope, got {type(other).__name__}")
         _check_same_dim(self, other)
-        batch = torch.broadcast_shapes(self.batch_size, other.batch_size)
+        batch = broadcast_batch("other", other.batch_size, self.batch_size)
         g1 = self.generators.expand(*batch, *self.generators.shape[-2:])
         g2 = other.generators.expand(*batch, *other.generators.shape[-2:])
         return Zonotope(self.center + other.center, torch.cat((g1, g2), dim=-1))
@@ -137,6 +156,8 @@ class Zonotope:
     def translate(self, offset: Tensor) -> Zonotope:
         """``Z + offset`` for ``offset`` ``[..., n]``."""
         offset = check_tensor("offset", offset, min_ndim=1)
+        check_last_dim("offset", offset, self.dim)
+        broadcast_batch("offset", offset.shape[:-1], self.batch_size)
         center, generators = _broadcast_set(self.center + offset, self.generators)
         return Zonotope(center, generators)
 
@@ -161,7 +182,7 @@ class Zonotope:
         """``Z1 x Z2 = Z([c1; c2], blkdiag(G1, G2))`` (batch shapes broadcast)."""
         if not isinstance(other, Zonotope):
             raise ValueError(f"`other` must be a Zonotope, got {type(other).__name__}")
-        batch = torch.broadcast_shapes(self.batch_size, other.batch_size)
+        batch = broadcast_batch("other", other.batch_size, self.batch_size)
         c1 = self.center.expand(*batch, self.dim)
         c2 = other.center.expand(*batch, other.dim)
         g1 = self.generators.expand(*batch, *self.generators.shape[-2:])
@@ -202,22 +223,31 @@ class Zonotope:
         Returns a bool tensor of the broadcast batch shape.
         """
         points = check_tensor("points", points, min_ndim=1)
-        tol = default_tol(points.dtype) if tol is None else tol
         if points.shape[-1] != self.dim:
             raise ValueError(f"`points` must have last dimension {self.dim}, got {tuple(points.shape)}")
-        offset = points - self.center
-        generators = self.generators.expand(*offset.shape[:-1], *self.generators.shape[-2:])
-        if self.dim <= 3 and _full_rank(generators):
-            return zonotope_gauge(offset, generators) <= 1 + tol
-        flat_x = offset.detach().reshape(-1, self.dim).double().cpu().numpy()
-        flat_g = generators.detach().reshape(-1, *generators.shape[-2:]).double().cpu().numpy()
+        broadcast_batch("points", points.shape[:-1], self.batch_size)
+        dtype = torch.promote_types(points.dtype, self.center.dtype)
+        if tol is None:  # the looser tolerance when either side is in lower precision
+            tol = max(default_tol(points.dtype), default_tol(self.center.dtype))
+        offset = points.to(dtype) - self.center.to(dtype)
+        generators = self.generators.to(dtype)
+        if self.dim <= 3 and _full_rank(self.generators):
+            # facet data once per set; the points broadcast against it
+            normals = facet_normals(generators)
+            gauge = gauge_from_facets(offset, normals, facet_supports(normals, generators))
+            return gauge <= 1 + tol
+        generators = generators.expand(*offset.shape[:-1], *generators.shape[-2:])
+        rows = offset.shape[:-1].numel()
+        flat_x = offset.detach().reshape(rows, self.dim).double().cpu().numpy()
+        flat_g = generators.detach().reshape(rows, *generators.shape[-2:]).double().cpu().numpy()
         inside = [gauge_lp(g, x) <= 1 + max(tol, 1e-7) for g, x in zip(flat_g, flat_x)]
         return torch.tensor(inside, device=points.device).reshape(offset.shape[:-1])
 
     def sample(self, num: int, generator: torch.Generator | None = None) -> Tensor:
         """``num`` points ``c + G z`` with ``z`` uniform in the unit cube: ``[num, ..., n]``.
 
-        Half of the coefficients are snapped to +-1 so the samples also reach the boundary.
+        The second half of the samples has every coefficient snapped to +-1 (the zonotope's
+        vertices are among these points), so the samples also reach the boundary.
         """
         shape = (num, *self.generators.shape[:-2], self.n_generators)
         z = torch.rand(shape, generator=generator, dtype=self.center.dtype, device=self.center.device) * 2 - 1
@@ -250,13 +280,15 @@ class Zonotope:
         """
         from torchrl_brsl.sets.plotting import plot_polygons
 
+        if len(dims) != 2:
+            raise ValueError(f"`dims` must name two coordinates, got {list(dims)}")
         verts = self.project(dims).vertices().detach().cpu().reshape(-1, 2 * self.n_generators, 2)
         return plot_polygons([v.numpy() for v in verts], ax=ax, **kwargs)
 
 
 def _check_same_dim(a, b) -> None:
     if a.dim != b.dim:
-        raise ValueError(f"sets must share their dimension, got {a.dim} and {b.dim}")
+        raise ValueError(f"`other` is {b.dim}-dimensional but the set is {a.dim}-dimensional")
 
 
 def _broadcast_set(center: Tensor, generators: Tensor) -> tuple[Tensor, Tensor]:
