@@ -68,13 +68,16 @@ class BlackBoxSystem:
 class DoubleIntegrator(BlackBoxSystem):
     """Planar double integrator with quadratic drag and speed / acceleration saturation.
 
-    State ``(x, y, vx, vy)``, action ``(ax, ay)`` in ``[-1, 1]^2``, ``dt = 0.1``.
+    State ``(x, y, vx, vy)``, action ``(ax, ay)`` in ``[-1, 1]^2``, ``dt = 0.1``. The data
+    region spans speeds up to ``data_speed`` per axis (default ``max_speed``, where the
+    saturation is part of the data).
     """
 
-    def __init__(self, drag: float = 0.3, max_speed: float = 2.0):
+    def __init__(self, drag: float = 0.3, max_speed: float = 2.0, data_speed: float | None = None):
         d = torch.float64
-        super().__init__(dt=0.1, state_low=torch.tensor([-2.0, -2.0, -max_speed, -max_speed], dtype=d),
-                         state_high=torch.tensor([2.0, 2.0, max_speed, max_speed], dtype=d),
+        v = max_speed if data_speed is None else data_speed
+        super().__init__(dt=0.1, state_low=torch.tensor([-2.0, -2.0, -v, -v], dtype=d),
+                         state_high=torch.tensor([2.0, 2.0, v, v], dtype=d),
                          action_low=-torch.ones(2, dtype=d), action_high=torch.ones(2, dtype=d),
                          noise_half_width=torch.tensor([0.002, 0.002, 0.01, 0.01], dtype=d),
                          translation_invariant_dims=(0, 1))
