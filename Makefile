@@ -26,7 +26,9 @@ test: $(STAMP)
 	$(PY) -m pytest -q
 
 bench: $(STAMP)
-	$(PY) benchmarks/bench_reach_collision.py
+	$(PY) benchmarks/bench_core.py
+	$(PY) benchmarks/bench_layer.py
+	$(PY) benchmarks/bench_envs.py
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache

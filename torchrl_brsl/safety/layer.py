@@ -266,7 +266,7 @@ class BRSLSafetyLayer(Transform):
         if self.adjuster is not None and bool(todo.any()):
             idx = todo.nonzero().squeeze(-1)
             adjusted = self.adjuster(checker, x0[idx], plan[idx], obstacle_centers[idx], obstacle_generators[idx],
-                                     obstacle_mask[idx], start=start)
+                                     obstacle_mask[idx], start=start, reference=safe_plan[idx].to(dtype))
             accepted[idx] = adjusted.evaluation.safe
             actions = actions.clone()
             values = values.clone()

@@ -104,12 +104,18 @@ class PlanChecker:
         Returns:
             ``(actions [B, T, m], centers [B, T, n])``; differentiable w.r.t. ``plan``.
         """
+        n_tail = self.horizon - plan.shape[1]
+        if self.failsafe.policy is None:  # open-loop braking: the whole sequence is affine in the plan
+            hold = torch.minimum(torch.maximum(self.failsafe.hold_action.to(plan), self.action_low), self.action_high)
+            actions = torch.cat((plan, hold.to(self.action_dtype).to(plan.dtype).expand(plan.shape[0], n_tail, -1)),
+                                dim=1)
+            return actions, self.reach.reach_centers(x0, actions)
         centers = self.reach.reach_centers(x0, plan)
         actions = [plan]
         A, B, k = self.reach.state_matrix, self.reach.input_matrix, self.reach.offset
         c = centers[:, -1]
         tail_centers, tail_actions = [], []
-        for _ in range(self.horizon - plan.shape[1]):
+        for _ in range(n_tail):
             u = torch.minimum(torch.maximum(self.failsafe.actions(c), self.action_low), self.action_high)
             u = u.to(self.action_dtype).to(c.dtype)
             c = c @ A.T + u @ B.T + k

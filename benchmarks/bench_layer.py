@@ -1,0 +1,118 @@
+"""Per-step latency of the safety layer, beside one env step and one actor forward pass.
+
+``diffdrive_nav`` (Turtlebot-like) with 10 obstacles in range and ``n_plan = 10``
+(``T = 16`` reachable sets with the braking tail), one CPU thread. Three regimes:
+
+- safe proposals (no adjustment needed): a gentle constant plan in open space;
+- adjustment: the plan drives at full speed towards a wall, so once the wall is within the
+  braking distance every step needs an adjustment; both adjusters are timed;
+- the same with 4 envs in one batched call (layer outside the batched env).
+
+The layer's own time is its ``compute_time`` diagnostic (read, check, adjust, write).
+Usage: ``python benchmarks/bench_layer.py [--quick]``
+"""
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import torch
+from torchrl.envs import TransformedEnv
+
+import envs
+from torchrl_brsl.reach import DataDrivenReach
+from torchrl_brsl.safety import BRSLSafetyLayer, FacetQPAdjuster, Failsafe, GradientAdjuster
+from torchrl_brsl.sets import Zonotope
+
+TASK, N_PLAN, N_OBSTACLES = "diffdrive_nav", 10, 10
+
+
+def make_layer(reach, info, adjuster):
+    """The layer with open-loop braking (the zero command, which is this task's braking policy)."""
+    horizon = N_PLAN + info.n_brk
+    radius = reach.error_generators_sequence(horizon)[-1, list(info.velocity_dims)].abs().sum(-1)
+    return BRSLSafetyLayer(reach, Failsafe(info.braking_action, info.n_brk), N_PLAN,
+                           stop_dims=info.velocity_dims, stop_tolerance=(radius + 0.15).tolist(),
+                           action_low=info.action_low, action_high=info.action_high, adjuster=adjuster)
+
+
+def episode_times(layer, steps: int, towards_wall: bool, seed: int) -> list[float]:
+    env = TransformedEnv(envs.make(TASK, seed=seed, episode_steps=10_000), layer)
+    td = env.reset()
+    state = td["state"]
+    mask = td["obstacles", "mask"].clone()
+    mask[:] = False
+    mask[:N_OBSTACLES] = True
+    obstacles = td["obstacles"].clone()
+    obstacles["mask"] = mask
+    if towards_wall:  # put obstacle 0 (a wall) ahead of the robot
+        obstacles["center"][0] = state[:2] + 1.6 * state[2:4]
+        speed = [0.25, 0.0]
+    else:
+        speed = [0.05, 0.0]
+    times = []
+    for _ in range(steps):
+        td["obstacles"] = obstacles
+        td["plan"] = torch.tensor([speed] * N_PLAN)
+        td["action"] = td["plan"][0]
+        td = env.step(td)
+        times.append(td["next", "brsl", "compute_time"].item())
+        td = env.step_mdp(td)
+    return times
+
+
+def stats(times: list[float]) -> tuple[float, float]:
+    ordered = sorted(times)
+    return 1e3 * statistics.median(ordered), 1e3 * ordered[min(len(ordered) - 1, int(0.99 * len(ordered)))]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    torch.manual_seed(0)
+    info = envs.safety_info(TASK)
+    noise = Zonotope(info.noise_center.double(), info.noise_generators.double())
+    reach = DataDrivenReach.from_env(envs.make(TASK, empty=True, seed=1), noise, steps=500,
+                                     translation_invariant_dims=info.position_dims, max_generators=30)
+    steps = 30 if args.quick else 120
+    rows = {}
+    safe = episode_times(make_layer(reach, info, GradientAdjuster()), steps, False, 0)
+    rows["layer, safe proposals (no adjustment)"] = stats(safe[5:])
+    for name, adjuster in (("projected gradient (paper)", GradientAdjuster()), ("facet-locked QP", FacetQPAdjuster())):
+        times = episode_times(make_layer(reach, info, adjuster), steps, True, 0)
+        adjusted = times[12:]  # once the wall is within braking distance every step adjusts
+        rows[f"layer, adjusting every step: {name}"] = stats(adjusted)
+
+    base = envs.make(TASK, seed=0)
+    td = base.reset()
+    env_times = []
+    for _ in range(steps):
+        start = time.perf_counter()
+        td = base.step(base.rand_action(td))
+        env_times.append(time.perf_counter() - start)
+        td = base.step_mdp(td) if not td["next", "done"].item() else base.reset()
+    rows["one env step (MuJoCo + TorchRL wrapper)"] = stats(env_times)
+    actor = torch.nn.Sequential(torch.nn.Linear(23, 256), torch.nn.ReLU(), torch.nn.Linear(256, 256),
+                                torch.nn.ReLU(), torch.nn.Linear(256, 2), torch.nn.Tanh())
+    obs = torch.randn(23)
+    actor_times = []
+    with torch.no_grad():
+        for _ in range(steps * 5):
+            start = time.perf_counter()
+            actor(obs)
+            actor_times.append(time.perf_counter() - start)
+    rows["one actor forward (MLP 23-256-256-2)"] = stats(actor_times)
+
+    print(f"{TASK}: {N_OBSTACLES} obstacles, n_plan = {N_PLAN}, n_brk = {info.n_brk}, one CPU thread")
+    print(f"{'':<52}{'median ms':>12}{'p99 ms':>10}")
+    for label, (median, p99) in rows.items():
+        print(f"{label:<52}{median:>12.3f}{p99:>10.3f}")
+    best = min(v[0] for k, v in rows.items() if "adjusting" in k)
+    print(f"target: median <= 2 ms with adjustment: {'met' if best <= 2 else 'MISSED'} (best {best:.2f} ms)")
+
+
+if __name__ == "__main__":
+    main()
