@@ -1,35 +1,5 @@
-import functools
-
 import pytest
 import torch
-
-import envs
-from torchrl_brsl.reach import DataDrivenReach
-from torchrl_brsl.safety import BRSLSafetyLayer, Failsafe
-from torchrl_brsl.sets import Zonotope
-
-
-@functools.lru_cache(maxsize=None)
-def fitted_reach(task: str, steps: int = 500, seed: int = 0) -> DataDrivenReach:
-    """Offline data from the task's empty variant, fitted once per test session."""
-    info = envs.safety_info(task)
-    torch.manual_seed(seed)
-    noise = Zonotope(info.noise_center.double(), info.noise_generators.double())
-    return DataDrivenReach.from_env(envs.make(task, empty=True, seed=seed + 1), noise, steps=steps,
-                                    translation_invariant_dims=info.position_dims, max_generators=30)
-
-
-def make_layer(task: str, **kwargs) -> BRSLSafetyLayer:
-    """The safety layer for ``task`` with a stop tolerance just above the final set's radius."""
-    info = envs.safety_info(task)
-    reach = fitted_reach(task)
-    horizon = info.n_plan + info.n_brk
-    radius = reach.error_generators_sequence(horizon)[-1, list(info.velocity_dims)].abs().sum(-1)
-    options = dict(stop_dims=info.velocity_dims, stop_tolerance=(radius + 0.15).tolist(),
-                   action_low=info.action_low, action_high=info.action_high)
-    options.update(kwargs)
-    return BRSLSafetyLayer(reach, Failsafe(info.braking_action, info.n_brk, info.braking_policy), info.n_plan,
-                           **options)
 
 
 @pytest.fixture(autouse=True)

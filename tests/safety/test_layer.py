@@ -9,7 +9,7 @@ from torchrl.envs.utils import check_env_specs
 import envs
 from torchrl_brsl.safety import DIAGNOSTICS, BRSLSafetyLayer, Failsafe
 
-from conftest import fitted_reach, make_layer
+from safety_support import fitted_reach, make_layer
 
 TASK = "diffdrive_nav"
 
