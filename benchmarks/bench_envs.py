@@ -1,4 +1,4 @@
-"""Steps per second of the four tasks, on one thread.
+"""Steps per second of the tasks, on one thread.
 
 Columns:
   dm_control   the raw ``control.Environment`` (``env.step(numpy action)``)
@@ -8,7 +8,8 @@ Columns:
                renamed into the nested ``obstacles`` entry; flags stay bool)
 
 Actions are uniform over the action box and episodes restart when they end (reset
-time included). Usage: ``python benchmarks/bench_envs.py [--steps 3000] [--empty]``.
+time included). Usage:
+``python benchmarks/bench_envs.py [--steps 3000] [--empty] [--tasks point_boxes ...]``.
 """
 from __future__ import annotations
 
@@ -73,10 +74,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--steps", type=int, default=3000)
     parser.add_argument("--empty", action="store_true", help="benchmark the obstacle-free variants")
+    parser.add_argument("--tasks", nargs="+", choices=envs.TASKS, default=envs.TASKS, help="tasks (default: all)")
     args = parser.parse_args()
     print(f"steps/s, one thread, {args.steps} steps per entry{' (empty variants)' if args.empty else ''}")
     print(f"{'task':<16}{'dm_control':>12}{'torchrl':>12}{'reference':>12}")
-    for name in envs.TASKS:
+    for name in args.tasks:
         for bench in (bench_dm_control, bench_torchrl, bench_reference):
             bench(name, 200, args.empty)  # warm-up
         row = [bench(name, args.steps, args.empty) for bench in (bench_dm_control, bench_torchrl, bench_reference)]

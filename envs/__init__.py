@@ -1,8 +1,10 @@
 """MuJoCo / dm_control robot tasks mirroring the experiments of the BRSL paper.
 
-Four tasks, made by name with :func:`make`: ``point_circle`` (2-D double integrator
+Five tasks, made by name with :func:`make`: ``point_circle`` (2-D double integrator
 following a circle), ``diffdrive_nav`` (Turtlebot-like navigation), ``quadrotor_nav``
-(3-D navigation) and ``hexarotor_wind`` (checkpoints in wind). Each is a dm_control
+(3-D navigation), ``hexarotor_wind`` (checkpoints in wind) and ``point_boxes`` (a
+velocity-commanded point mass among boxes around its start, where random actions
+collide; small and fast, for tests of safety layers). Each is a dm_control
 ``control.Environment`` wrapped as a TorchRL env whose TensorDict carries
 ``observation``, ``state``, ``obstacles`` (padded zonotopes ``center``, ``generators``,
 ``mask``), ``collision``, ``goal_reached`` and ``speed``. :func:`safety_info` describes

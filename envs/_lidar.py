@@ -59,6 +59,7 @@ class Lidar:
         self.exclude_body = int(exclude_body)
         self._n = len(self.directions)
         self._world = np.empty_like(self.directions)
+        self._flat_directions = self.directions.reshape(-1)
         self._geomid = np.empty(self._n, dtype=np.int32)
         self._dist = np.empty(self._n, dtype=np.float64)
         self._group = np.zeros(6, dtype=np.uint8)
@@ -75,16 +76,20 @@ class Lidar:
         Returns:
             Ranges ``[n]`` in ``[0, max_range]``.
         """
-        cos, sin = np.cos(yaw), np.sin(yaw)
-        d = self.directions
-        self._world[:, 0] = cos * d[:, 0] - sin * d[:, 1]
-        self._world[:, 1] = sin * d[:, 0] + cos * d[:, 1]
-        self._world[:, 2] = d[:, 2]
+        if yaw == 0.0:  # world-aligned sensor
+            world = self._flat_directions
+        else:
+            cos, sin = np.cos(yaw), np.sin(yaw)
+            d = self.directions
+            self._world[:, 0] = cos * d[:, 0] - sin * d[:, 1]
+            self._world[:, 1] = sin * d[:, 0] + cos * d[:, 1]
+            self._world[:, 2] = d[:, 2]
+            world = self._world.reshape(-1)
         mujoco.mj_multiRay(
             physics.model.ptr,
             physics.data.ptr,
             np.asarray(origin, dtype=np.float64),
-            self._world.reshape(-1),
+            world,
             self._group,
             1,
             self.exclude_body,

@@ -1,4 +1,4 @@
-"""MJCF pieces shared by the four task models."""
+"""MJCF pieces shared by the task models."""
 from __future__ import annotations
 
 from envs._lidar import OBSTACLE_GROUP

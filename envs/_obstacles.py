@@ -31,6 +31,8 @@ import numpy as np
 
 #: number of generators of one obstacle zonotope, by position dimension
 GENERATORS_PER_OBSTACLE = {2: 6, 3: 7}
+#: where unused obstacle slots wait, far below every arena
+PARKING_POS = np.array([0.0, 0.0, -50.0])
 
 
 @dataclass(frozen=True)
@@ -205,11 +207,12 @@ def obstacle_bodies_xml(kinds: Sequence[str], max_half_size: Sequence[Sequence[f
         XML to put inside ``<worldbody>``; geoms use the default class ``obstacle``.
     """
     parts = []
+    parking = " ".join(f"{v:.6g}" for v in PARKING_POS)
     for i, (kind, half) in enumerate(zip(kinds, max_half_size)):
         size = Obstacle(kind, np.zeros(3), np.asarray(half, dtype=np.float64)).mujoco_size()
         size_text = " ".join(f"{v:.6g}" for v in (size if kind == "box" else size[:2]))
         parts.append(
-            f'<body name="obstacle_{i}" mocap="true" pos="0 0 -50">'
+            f'<body name="obstacle_{i}" mocap="true" pos="{parking}">'
             f'<geom name="obstacle_{i}" class="obstacle" type="{kind}" size="{size_text}"/></body>'
         )
     return "\n".join(parts)
@@ -244,10 +247,14 @@ class ObstacleSlots:
     def apply(self, physics, obstacles: Sequence[Obstacle]) -> None:
         """Moves and resizes slot ``i`` to ``obstacles[i]``.
 
-        Call inside ``physics.reset_context()`` (mocap poses live in the data).
+        Slots beyond ``len(obstacles)`` are parked at ``PARKING_POS``, out of reach of
+        every robot (layouts with a variable number of obstacles). Call inside
+        ``physics.reset_context()`` (mocap poses live in the data).
         """
-        if len(obstacles) != len(self.kinds):
-            raise ValueError(f"expected {len(self.kinds)} obstacles, got {len(obstacles)}")
+        if len(obstacles) > len(self.kinds):
+            raise ValueError(f"expected at most {len(self.kinds)} obstacles, got {len(obstacles)}")
+        parked = [Obstacle(kind, PARKING_POS, np.full(3, 0.01)) for kind in self.kinds[len(obstacles) :]]
+        obstacles = [*obstacles, *parked]
         model, data = physics.model, physics.data
         for i, obstacle in enumerate(obstacles):
             if obstacle.kind != self.kinds[i]:

@@ -1,11 +1,12 @@
 """Task registry: :func:`make` and :func:`safety_info` by task name."""
 from __future__ import annotations
 
+import inspect
 from types import ModuleType
 
 from torchrl.envs import EnvBase
 
-from envs import diffdrive_nav, hexarotor_wind, point_circle, quadrotor_nav
+from envs import diffdrive_nav, hexarotor_wind, point_boxes, point_circle, quadrotor_nav
 from envs._safety_info import SafetyInfo
 from envs._wrapper import SafetyTaskEnv
 
@@ -14,12 +15,14 @@ _TASKS: dict[str, ModuleType] = {
     "diffdrive_nav": diffdrive_nav,
     "quadrotor_nav": quadrotor_nav,
     "hexarotor_wind": hexarotor_wind,
+    "point_boxes": point_boxes,
 }
 
 #: names accepted by :func:`make` and :func:`safety_info`
 TASKS: tuple[str, ...] = tuple(_TASKS)
 
-_TASK_KWARGS = ("episode_steps", "terminate_on_collision")
+#: arguments of every task's ``build_environment`` that :func:`make` fills itself
+_MAKE_ARGS = ("empty", "layout", "seed")
 
 
 def _module(name: str) -> ModuleType:
@@ -41,8 +44,10 @@ def make(name: str, seed: int | None = 0, empty: bool = False, layout: int | Non
             robot leaves the data region.
         layout: index of a fixed evaluation layout (obstacles, goal, start; for
             ``hexarotor_wind`` also the wind), identical for every seed and reset.
-        **kwargs: ``episode_steps`` (time limit in control steps) and
-            ``terminate_on_collision`` go to the task; anything else (``from_pixels``,
+        **kwargs: arguments of the task module's ``build_environment``
+            (``episode_steps``, the time limit in control steps, and
+            ``terminate_on_collision`` for every task; ``max_acceleration`` for
+            ``point_boxes``) go to the task; anything else (``from_pixels``,
             ``pixels_only``, ``camera_id``, ``render_kwargs``, ``device``) to
             :class:`~torchrl.envs.DMControlWrapper`.
 
@@ -60,7 +65,8 @@ def make(name: str, seed: int | None = 0, empty: bool = False, layout: int | Non
         torch.Size([3, 1])
     """
     module = _module(name)
-    task_kwargs = {key: kwargs.pop(key) for key in _TASK_KWARGS if key in kwargs}
+    task_args = set(inspect.signature(module.build_environment).parameters) - set(_MAKE_ARGS)
+    task_kwargs = {key: kwargs.pop(key) for key in task_args if key in kwargs}
     environment = module.build_environment(empty=empty, layout=layout, seed=seed, **task_kwargs)
     env = SafetyTaskEnv(environment, **kwargs)
     if seed is not None:

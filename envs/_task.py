@@ -1,4 +1,4 @@
-"""Episode logic shared by the four tasks (a dm_control ``base.Task`` subclass).
+"""Episode logic shared by the tasks (a dm_control ``base.Task`` subclass).
 
 Subclasses supply the robot: how an action drives the physics, how state-space noise
 is written back into the physics, what the state and the policy observation are, the

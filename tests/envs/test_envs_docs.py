@@ -15,6 +15,7 @@ MODULES = [
     "envs.diffdrive_nav",
     "envs.hexarotor_wind",
     "envs.plotting",
+    "envs.point_boxes",
     "envs.point_circle",
     "envs.quadrotor_nav",
 ]

@@ -41,7 +41,9 @@ def _obstacle_in_reach(layout, start_offset):
     return first, start, -direction
 
 
-@pytest.mark.parametrize("name, speed", [("diffdrive_nav", 0.25), ("quadrotor_nav", 3.0), ("hexarotor_wind", 3.0)])
+@pytest.mark.parametrize(
+    "name, speed", [("diffdrive_nav", 0.25), ("quadrotor_nav", 3.0), ("hexarotor_wind", 3.0), ("point_boxes", 1.0)]
+)
 def test_driving_straight_into_an_obstacle_collides(name, speed):
     env = envs.make(name, seed=1)
     td = env.reset()
@@ -50,6 +52,9 @@ def test_driving_straight_into_an_obstacle_collides(name, speed):
     if name == "diffdrive_nav":
         place_robot(env, start, heading=float(np.arctan2(direction[1], direction[0])))
         action = [speed, 0.0]
+    elif name == "point_boxes":
+        place_robot(env, start)
+        action = speed * direction
     else:
         place_robot(env, start)
         action = [*(speed * direction), 0.0]
@@ -144,14 +149,20 @@ def _random_moving_states(name, rng, n):
         v = np.r_[0.25, 0.25, rng.uniform(0, 0.25, n - 2)]
         w = np.r_[0.5, -0.5, rng.uniform(-0.5, 0.5, n - 2)]
         return np.stack([v, w], 1)
+    if name == "point_boxes":  # per-axis commands in [-1, 1], plus the noise
+        corners = np.array([[1.01, 1.01], [-1.01, 0.5]])
+        return np.concatenate([corners, rng.uniform(-1, 1, (n - 2, 2))])
     corners = np.array([[5.0, 5.0, 5.0], [-5.0, 5.0, -5.0]])
     return np.concatenate([corners, rng.uniform(-5, 5, (n - 2, 3))])
 
 
-@pytest.mark.parametrize("name", envs.TASKS)
+@pytest.mark.parametrize("name", [*envs.TASKS, "point_boxes_linear"])
 def test_braking_policy_stops_within_n_brk(name):
+    kwargs = {}
+    if name == "point_boxes_linear":
+        name, kwargs = "point_boxes", {"max_acceleration": None}
     info = envs.safety_info(name)
-    env = envs.make(name, seed=0, empty=True, episode_steps=1000)
+    env = envs.make(name, seed=0, empty=True, episode_steps=1000, **kwargs)
     rng = np.random.RandomState(1)
     for velocity in _random_moving_states(name, rng, 8):
         td = env.reset()
@@ -255,3 +266,64 @@ def test_hexarotor_wind_pushes_a_hovering_robot():
     if np.linalg.norm(wind) > 0.3:
         assert velocity @ wind > 0  # drifts downwind
     assert np.linalg.norm(velocity) <= envs.safety_info("hexarotor_wind").stop_tolerance
+
+
+def _uniform_policy(info, generator):
+    def policy(td):
+        u = torch.rand(info.action_dim, generator=generator)
+        return td.set("action", info.action_low + u * (info.action_high - info.action_low))
+
+    return policy
+
+
+def test_point_boxes_random_policy_collides_in_most_episodes():
+    """What the tests of safety layers rely on: without a layer, random actions crash."""
+    info = envs.safety_info("point_boxes")
+    env = envs.make("point_boxes", seed=0)
+    policy = _uniform_policy(info, torch.Generator().manual_seed(0))
+    collided = []
+    for _ in range(30):
+        td = env.rollout(1000, policy)
+        assert td.shape[0] <= 80
+        assert not td[0]["collision"]  # the start is clear
+        collided.append(bool(td["next", "collision"].any()))
+        if collided[-1]:
+            assert td["next", "terminated"][-1] and td["next", "reward"][-1] == -10.0
+    assert np.mean(collided) >= 0.5
+
+
+def test_point_boxes_servo_tracks_the_command_within_the_acceleration_limit():
+    env = envs.make("point_boxes", seed=0, empty=True)
+    td = env.reset()
+    place_robot(env, np.zeros(2), velocity=np.array([-1.0, 1.0]))
+    velocities = [np.array([-1.0, 1.0])]
+    for _ in range(8):
+        td, nxt = _step(env, td, [1.0, 0.2])
+        velocities.append(nxt["state"][2:].double().numpy())
+        td = env.step_mdp(td)
+    change = np.abs(np.diff(velocities, axis=0))
+    assert change.max() <= 5.0 * 0.1 + 0.01 + 1e-6  # 5 m/s^2 per axis, plus the noise
+    assert change[0, 0] >= 0.5 - 0.01 - 1e-6  # saturated at first
+    np.testing.assert_allclose(velocities[-1], [1.0, 0.2], atol=0.012)
+    assert nxt["reward"] == pytest.approx(float(np.linalg.norm(velocities[-1])), rel=1e-5)
+
+
+def test_point_boxes_without_acceleration_limit_is_linear():
+    """Noiseless steps of the unlimited variant: ``v+ = a v + (1 - a) u``, ``x+ = x + c v + d u``."""
+    env = envs.make("point_boxes", seed=0, empty=True, max_acceleration=None)
+    env.reset()
+    env.task.noise_scale = 0.0
+    rng = np.random.RandomState(0)
+    rows, targets = [], []
+    for _ in range(30):
+        state = env.task.state(env.physics)
+        action = rng.uniform(-1, 1, 2)
+        after = _manual_step(env, action)
+        for axis in range(2):
+            rows.append([state[2 + axis], action[axis]])
+            targets.append([after[axis] - state[axis], after[2 + axis]])
+    rows, targets = np.array(rows), np.array(targets)
+    coefficients, *_ = np.linalg.lstsq(rows, targets, rcond=None)
+    np.testing.assert_allclose(rows @ coefficients, targets, atol=1e-12)
+    a = 0.6**5
+    np.testing.assert_allclose(coefficients[:, 1], [a, 1 - a], atol=1e-12)

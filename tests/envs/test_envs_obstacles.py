@@ -3,7 +3,14 @@ import numpy as np
 import pytest
 
 import envs
-from envs._obstacles import Obstacle, dodecagon_generators, obstacle_zonotope, octagon_generators
+from envs._obstacles import (
+    PARKING_POS,
+    Obstacle,
+    ObstacleSlots,
+    dodecagon_generators,
+    obstacle_zonotope,
+    octagon_generators,
+)
 from envs_support import robot_obstacle_distance, zonotope_contains
 
 
@@ -83,3 +90,52 @@ def test_aerial_lidar_sees_floor_and_ceiling():
     assert (ranges[8:] <= (6.0 - z) / np.sin(np.deg2rad(25)) + 1e-5).all()
     empty = envs.make("quadrotor_nav", seed=0, empty=True).reset()
     assert (empty["observation"][:16] == 1.0).all()
+
+
+def test_point_boxes_layouts_surround_a_clear_start():
+    """4-6 axis-aligned boxes inside the arena, all around the start; the robot
+    centre at the start is at least 0.25 m outside every inflated obstacle."""
+    from envs.point_boxes import ARENA, N_BOXES
+
+    env = envs.make("point_boxes", seed=0)
+    counts, angles = set(), []
+    for _ in range(40):
+        td = env.reset()
+        layout = env.layout
+        boxes = layout.obstacles[4:]
+        counts.add(len(boxes))
+        assert int(td["obstacles", "mask"].sum()) == len(layout.obstacles) == 4 + len(boxes)
+        assert not td["obstacles", "mask"][len(layout.obstacles) :].any()
+        np.testing.assert_array_equal(layout.start, [0.0, 0.0])
+        for box in boxes:
+            assert box.kind == "box" and box.yaw == 0.0
+            assert (np.abs(box.pos[:2]) + box.half_size[:2] < ARENA).all()
+            gap = np.linalg.norm(np.maximum(np.abs(box.pos[:2] - layout.start) - box.half_size[:2], 0.0))
+            disc_gap = np.linalg.norm(box.pos[:2] - layout.start) - box.xy_radius
+            assert 0.35 - 1e-9 <= disc_gap <= gap and disc_gap <= 0.65 + 1e-9
+            angles.append(np.arctan2(box.pos[1], box.pos[0]))
+        # the start, grown by 0.2 m, misses every inflated obstacle (the octagons reach
+        # at most 0.1 / cos(22.5°) < 0.11 m beyond a box)
+        circle = np.linspace(0, 2 * np.pi, 64)
+        disc = layout.start + np.concatenate([[[0.0, 0.0]], 0.2 * np.stack([np.cos(circle), np.sin(circle)], 1)])
+        for c, g, real in zip(layout.obstacle_center, layout.obstacle_generators, layout.obstacle_mask):
+            assert not real or not zonotope_contains(c, g, disc).any()
+        # unused slots wait out of reach
+        parked = env.task._slots.mocap_ids[len(layout.obstacles) :]
+        np.testing.assert_array_equal(env.physics.data.mocap_pos[parked], np.tile(PARKING_POS, (len(parked), 1)))
+    assert counts == set(range(N_BOXES[0], N_BOXES[1] + 1))
+    # boxes come from every direction
+    assert np.histogram(angles, bins=8, range=(-np.pi, np.pi))[0].min() > 0
+
+
+def test_obstacle_slots_park_unused_slots_and_reject_too_many():
+    env = envs.make("point_circle", seed=0)
+    env.reset()
+    slots = ObstacleSlots(env.physics, ["box"] * 4)
+    wall = Obstacle("box", np.array([2.0, 0.0, 0.1]), np.array([0.1, 0.2, 0.2]))
+    with env.physics.reset_context():
+        slots.apply(env.physics, [wall])
+    expected = [wall.pos, PARKING_POS, PARKING_POS, PARKING_POS]
+    np.testing.assert_array_equal(env.physics.data.mocap_pos[slots.mocap_ids], expected)
+    with pytest.raises(ValueError, match="at most 4"):
+        slots.apply(env.physics, [wall] * 5)

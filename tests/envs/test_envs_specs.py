@@ -8,8 +8,8 @@ from envs._obstacles import GENERATORS_PER_OBSTACLE
 
 torch.set_num_threads(1)
 
-CAPACITY = {"point_circle": 4, "diffdrive_nav": 12, "quadrotor_nav": 18, "hexarotor_wind": 14}
-OBSERVATION_DIM = {"point_circle": 5, "diffdrive_nav": 23, "quadrotor_nav": 22, "hexarotor_wind": 26}
+CAPACITY = {"point_circle": 4, "diffdrive_nav": 12, "quadrotor_nav": 18, "hexarotor_wind": 14, "point_boxes": 10}
+OBSERVATION_DIM = {"point_circle": 5, "diffdrive_nav": 23, "quadrotor_nav": 22, "hexarotor_wind": 26, "point_boxes": 12}
 
 
 @pytest.mark.parametrize("empty", [False, True])
@@ -87,6 +87,25 @@ def test_point_braking_policy_values():
     state = torch.tensor([[0.3, -0.2, 0.05, -2.0], [0.0, 0.0, 1.0, 0.02]])
     expected = torch.tensor([[-0.5, 1.0], [-1.0, -0.2]])
     assert torch.allclose(info.braking_policy(state), expected)
+
+
+def test_point_boxes_safety_info_values():
+    info = envs.safety_info("point_boxes")
+    assert (info.state_dim, info.action_dim, info.obstacle_dim) == (4, 2, 2)
+    assert (info.position_dims, info.velocity_dims) == ((0, 1), (2, 3))
+    assert (info.n_brk, info.n_plan, info.stop_tolerance) == (3, 6, 0.05)
+    assert torch.equal(info.noise_generators, torch.tensor([[0.0, 0.0], [0.0, 0.0], [0.01, 0.0], [0.0, 0.01]]))
+    assert torch.equal(info.braking_action, torch.zeros(2))
+    assert torch.equal(info.braking_policy(torch.ones(3, 4)), torch.zeros(3, 2))
+    assert envs.TASKS[-1] == "point_boxes"
+
+
+def test_make_forwards_task_arguments():
+    """``build_environment`` arguments go to the task, the rest to the wrapper."""
+    linear = envs.make("point_boxes", seed=0, max_acceleration=None, episode_steps=5)
+    assert not linear.physics.model.actuator_forcelimited.any()
+    assert linear.rollout(10).shape == (5,)
+    assert envs.make("point_boxes", seed=0).physics.model.actuator_forcelimited.all()
 
 
 def test_unknown_task_raises():
