@@ -9,18 +9,31 @@ from torchrl_brsl.safety import BRSLSafetyLayer, Failsafe
 from torchrl_brsl.sets import Zonotope
 
 
+#: task options used for both the offline data and the episodes. ``point_boxes`` without its
+#: acceleration cap has linear dynamics, where the data-driven sets stay tight.
+TASK_OPTIONS = {"point_boxes": {"max_acceleration": None}}
+
+
+def make_env(task: str, **kwargs):
+    """``envs.make`` with the task options of these tests."""
+    return envs.make(task, **TASK_OPTIONS.get(task, {}), **kwargs)
+
+
 @functools.lru_cache(maxsize=None)
 def fitted_reach(task: str, steps: int = 500, seed: int = 0) -> DataDrivenReach:
     """Offline data from the task's empty variant, fitted once per test session."""
     info = envs.safety_info(task)
     torch.manual_seed(seed)
     noise = Zonotope(info.noise_center.double(), info.noise_generators.double())
-    return DataDrivenReach.from_env(envs.make(task, empty=True, seed=seed + 1), noise, steps=steps,
+    return DataDrivenReach.from_env(make_env(task, empty=True, seed=seed + 1), noise, steps=steps,
                                     translation_invariant_dims=info.position_dims, max_generators=30)
 
 
 def make_layer(task: str, **kwargs) -> BRSLSafetyLayer:
-    """The safety layer for ``task`` with a stop tolerance just above the final set's radius."""
+    """The safety layer for ``task`` with a stop tolerance just above the final set's radius.
+
+    The tasks used here are velocity-commanded: braking is the open-loop zero command.
+    """
     info = envs.safety_info(task)
     reach = fitted_reach(task)
     horizon = info.n_plan + info.n_brk
@@ -28,5 +41,5 @@ def make_layer(task: str, **kwargs) -> BRSLSafetyLayer:
     options = dict(stop_dims=info.velocity_dims, stop_tolerance=(radius + 0.15).tolist(),
                    action_low=info.action_low, action_high=info.action_high)
     options.update(kwargs)
-    return BRSLSafetyLayer(reach, Failsafe(info.braking_action, info.n_brk, info.braking_policy), info.n_plan,
+    return BRSLSafetyLayer(reach, Failsafe(info.braking_action, info.n_brk), info.n_plan,
                            **options)
