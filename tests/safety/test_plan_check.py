@@ -1,0 +1,125 @@
+import pytest
+import torch
+
+from torchrl_brsl.collision import collision_value
+from torchrl_brsl.reach import DataDrivenReach, DoubleIntegrator
+from torchrl_brsl.safety import FacetQPAdjuster, Failsafe, GradientAdjuster, PlanChecker
+from torchrl_brsl.sets import Zonotope
+
+N_PLAN, N_BRK = 5, 8
+
+
+@pytest.fixture(scope="module")
+def system():
+    return DoubleIntegrator(drag=0.05, max_speed=3.0, data_speed=1.5)
+
+
+@pytest.fixture(scope="module")
+def reach(system):
+    x, xp, u = system.offline_data(500, torch.Generator().manual_seed(0))
+    return DataDrivenReach.fit(x, xp, u, system.noise, translation_invariant_dims=(0, 1), max_generators=24)
+
+
+def make_checker(reach, system, policy=True, **kwargs):
+    horizon = N_PLAN + N_BRK
+    radius = reach.error_generators_sequence(horizon)[-1, 2:].abs().sum(-1)
+    failsafe = Failsafe(torch.zeros(2, dtype=torch.float64), N_BRK, system.braking if policy else None)
+    options = dict(stop_dims=(2, 3), stop_tolerance=(radius + 0.1).tolist(), action_low=system.action_low,
+                   action_high=system.action_high)
+    options.update(kwargs)
+    return PlanChecker(reach, failsafe, horizon, **options)
+
+
+def box(lo, hi):
+    z = Zonotope.from_interval(torch.tensor(lo, dtype=torch.float64), torch.tensor(hi, dtype=torch.float64))
+    return z.center.view(1, 1, 2), z.generators.view(1, 1, 2, 2), torch.ones(1, 1, dtype=torch.bool), z
+
+
+def test_braking_tail_follows_the_policy_on_the_nominal_trajectory(reach, system):
+    checker = make_checker(reach, system)
+    x0 = torch.tensor([[0.0, 0.0, 0.6, -0.3]], dtype=torch.float64)
+    plan = torch.tensor([[[1.0, 0.5]] * N_PLAN], dtype=torch.float64)
+    actions, centers = checker.rollout(x0, plan)
+    assert actions.shape == (1, N_PLAN + N_BRK, 2) and centers.shape == (1, N_PLAN + N_BRK, 4)
+    torch.testing.assert_close(actions[:, :N_PLAN], plan)
+    c = centers[:, N_PLAN - 1]
+    for j in range(N_PLAN, N_PLAN + N_BRK):
+        expected = system.braking(c).clamp(-1, 1).to(torch.float64)
+        torch.testing.assert_close(actions[:, j], expected)
+        c = c @ reach.state_matrix.T + expected @ reach.input_matrix.T + reach.offset
+        torch.testing.assert_close(centers[:, j], c)
+
+
+def test_values_match_collision_checks_of_the_explicit_sets(reach, system):
+    checker = make_checker(reach, system)
+    x0 = torch.tensor([[0.0, 0.0, 0.6, 0.0]], dtype=torch.float64)
+    plan = torch.tensor([[[1.0, 0.0]] * N_PLAN], dtype=torch.float64)
+    centers, generators, mask, obstacle = box([1.1, -0.35], [1.5, 0.35])
+    evaluation = checker.evaluate(x0, plan, centers, generators, mask)
+    actions = evaluation.actions[0]
+    sets = reach.reach(Zonotope.from_point(x0[0]), actions).project((0, 1))
+    # the checker reduces the projected generators; its sets contain the explicit ones, so its
+    # collision values can only be smaller (more conservative)
+    explicit = collision_value(sets, obstacle, backend="closed_form")
+    assert torch.all(evaluation.values[0, :, 0] <= explicit + 1e-9)
+    unreduced = make_checker(reach, system, set_generators=sets.generators.shape[-1])
+    torch.testing.assert_close(unreduced.evaluate(x0, plan, centers, generators, mask).values[0, :, 0], explicit)
+    assert not evaluation.safe.item()
+
+
+def test_masked_obstacles_are_ignored(reach, system):
+    checker = make_checker(reach, system)
+    x0 = torch.tensor([[0.0, 0.0, 0.0, 0.0]], dtype=torch.float64)
+    plan = torch.zeros(1, N_PLAN, 2, dtype=torch.float64)
+    centers, generators, mask, _ = box([-0.1, -0.1], [0.1, 0.1])  # on top of the robot
+    assert not checker.evaluate(x0, plan, centers, generators, mask).safe.item()
+    free = checker.evaluate(x0, plan, centers, generators, ~mask)
+    assert free.safe.item() and torch.isinf(free.values).all()
+
+
+def test_stop_condition_rejects_a_plan_that_cannot_stop(reach, system):
+    checker = make_checker(reach, system, policy=False)  # hold zero acceleration: never brakes
+    x0 = torch.tensor([[0.0, 0.0, 1.0, 0.0]], dtype=torch.float64)
+    evaluation = checker.evaluate(x0, torch.zeros(1, N_PLAN, 2, dtype=torch.float64),
+                                  torch.zeros(1, 0, 2, dtype=torch.float64),
+                                  torch.zeros(1, 0, 2, 2, dtype=torch.float64), torch.zeros(1, 0, dtype=torch.bool))
+    assert evaluation.stop_excess.item() > 0 and not evaluation.safe.item()
+
+
+@pytest.mark.parametrize("adjuster", [GradientAdjuster(max_iterations=200, time_budget=None), FacetQPAdjuster()])
+def test_adjusters_turn_an_unsafe_plan_into_a_verified_one(reach, system, adjuster):
+    checker = make_checker(reach, system)
+    x0 = torch.tensor([[0.0, 0.0, 0.6, 0.0]], dtype=torch.float64)
+    plan = torch.tensor([[[1.0, 0.0]] * N_PLAN], dtype=torch.float64)
+    centers, generators, mask, _ = box([1.1, -0.35], [1.5, 0.35])
+    assert not checker.evaluate(x0, plan, centers, generators, mask).safe.item()
+    # the reference for the facet-locked QP: brake at once (verified safe here)
+    reference = checker.rollout(x0, torch.tensor([[[-1.0, 0.0]] * N_PLAN], dtype=torch.float64))[0]
+    assert checker.evaluate(x0, reference[:, :N_PLAN], centers, generators, mask).safe.item()
+    result = adjuster(checker, x0, plan, centers, generators, mask, reference=reference)
+    assert result.evaluation.safe.item()
+    again = checker.evaluate(x0, result.plan, centers, generators, mask)
+    assert again.safe.item() and torch.all(again.values > 1)
+    assert torch.all(result.plan >= -1) and torch.all(result.plan <= 1)
+    # the adjusted plan still moves forward: it is not simply the braking reference
+    assert result.plan[0, 0, 0] > -1 + 1e-3
+
+
+def test_facet_qp_needs_a_reference(reach, system):
+    checker = make_checker(reach, system)
+    centers, generators, mask, _ = box([1.1, -0.35], [1.5, 0.35])
+    with pytest.raises(ValueError, match="reference"):
+        FacetQPAdjuster()(checker, torch.zeros(1, 4, dtype=torch.float64), torch.zeros(1, N_PLAN, 2,
+                                                                                       dtype=torch.float64),
+                          centers, generators, mask)
+
+
+def test_failsafe_validates_its_arguments():
+    with pytest.raises(ValueError, match="hold_action"):
+        Failsafe(torch.zeros(2, 2), 3)
+    with pytest.raises(ValueError, match="n_brk"):
+        Failsafe(torch.zeros(2), 0)
+    with pytest.raises(ValueError, match="policy"):
+        Failsafe(torch.zeros(2), 3, policy=5)
+    brake = Failsafe(torch.tensor([0.5, -0.5]), 3)
+    assert torch.equal(brake.actions(torch.zeros(4, 6)), torch.tensor([[0.5, -0.5]] * 4))
