@@ -14,26 +14,14 @@ Usage: ``python benchmarks/bench_reach.py [--quick]``
 from __future__ import annotations
 
 import argparse
-import statistics
-import time
 
 import torch
+from bench_collision import median_ms
 
 from torchrl_brsl.reach import DataDrivenReach, DoubleIntegrator, Unicycle
 from torchrl_brsl.sets import Zonotope
 
 N_PLAN = 10
-
-
-def median_ms(fn, repeats: int, warmup: int = 5) -> float:
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return 1e3 * statistics.median(times)
 
 
 def run(system, quick: bool) -> dict[str, float]:
@@ -50,8 +38,8 @@ def run(system, quick: bool) -> dict[str, float]:
                        float((fitted.generators - literal.generators).abs().max()))
     repeats = 50 if quick else 1000
     return {
-        "sets": median_ms(lambda: reach.reach(initial, plan), repeats),
-        "centers": median_ms(lambda: reach.reach_centers(x0, plan), repeats),
+        "sets": median_ms(lambda: reach.reach(initial, plan), repeats, 5),
+        "centers": median_ms(lambda: reach.reach_centers(x0, plan), repeats, 5),
         "literal": median_ms(lambda: exact.reach_literal(initial, plan), max(repeats // 20, 5), 1),
         "disagreement": disagreement,
     }
