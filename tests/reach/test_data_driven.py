@@ -198,3 +198,5 @@ def test_reach_rejects_bad_actions():
     reach = fit(DoubleIntegrator())
     with pytest.raises(ValueError, match="actions"):
         reach.reach(Zonotope.from_point(torch.zeros(4, dtype=torch.float64)), torch.zeros(5, 3))
+    with pytest.raises(ValueError, match="actions"):
+        reach.reach(Zonotope.from_point(torch.zeros(4, dtype=torch.float64)), torch.full((5, 2), float("nan")))

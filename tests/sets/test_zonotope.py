@@ -469,3 +469,15 @@ def test_contains_closed_form_agrees_with_lp(oracle, n, extra, seed):
 def test_docstring_examples():
     result = doctest.testmod(zonotope_module, optionflags=doctest.NORMALIZE_WHITESPACE)
     assert result.attempted > 0 and result.failed == 0
+
+
+def test_skip_value_checks_only_skips_the_nan_scan():
+    from torchrl_brsl.sets._checks import skip_value_checks
+
+    with skip_value_checks():
+        z = Zonotope(torch.tensor([float("nan"), 0.0]), torch.eye(2))
+        assert torch.isnan(z.center[0])
+        with pytest.raises(ValueError, match="generators"):
+            Zonotope(torch.zeros(2), torch.zeros(3, 2))
+    with pytest.raises(ValueError, match="center"):
+        Zonotope(torch.tensor([float("nan"), 0.0]), torch.eye(2))

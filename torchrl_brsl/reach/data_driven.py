@@ -10,7 +10,7 @@ from torch import Tensor, nn
 
 from torchrl_brsl.reach.lipschitz import covering_radius, residual_lipschitz
 from torchrl_brsl.sets import Zonotope, pad_generators, reduce_girard
-from torchrl_brsl.sets._checks import check_tensor
+from torchrl_brsl.sets._checks import check_tensor, skip_value_checks
 
 
 class DataDrivenReach(nn.Module):
@@ -239,7 +239,7 @@ class DataDrivenReach(nn.Module):
             A :class:`Zonotope` of batch ``[..., H]``, differentiable w.r.t. ``actions`` and the
             initial centre and generators.
         """
-        actions = check_tensor("actions", actions, min_ndim=2, finite=False)
+        actions = check_tensor("actions", actions, min_ndim=2)
         if not isinstance(initial, Zonotope) or initial.dim != self.state_dim:
             raise ValueError(f"`initial` must be a {self.state_dim}-dimensional Zonotope")
         if actions.shape[-1] != self.action_dim:
@@ -252,7 +252,8 @@ class DataDrivenReach(nn.Module):
             powers = self._transfer(horizon)[0]
             g0 = powers @ initial.generators.to(powers.dtype).unsqueeze(-3)  # [..., H, n, p0]
             errors = torch.cat((g0.expand(*batch, *g0.shape[-2:]), errors), dim=-1)
-        return Zonotope(centers, errors)
+        with skip_value_checks():  # built from the validated model and finite inputs
+            return Zonotope(centers, errors)
 
     def reach_literal(self, initial: Zonotope, actions: Tensor) -> Zonotope:
         """Reference: the paper's literal per-step form, one pseudo-inverse per step.

@@ -1,8 +1,26 @@
 """Input validation shared by the set classes: errors name the offending argument."""
 from __future__ import annotations
 
+import contextlib
+
 import torch
 from torch import Tensor
+
+_VALUE_CHECKS = [True]
+
+
+@contextlib.contextmanager
+def skip_value_checks():
+    """Within this context, sets are built without the NaN/inf scan of their tensors.
+
+    For library code that builds sets from already validated tensors on a hot path (the scan
+    synchronises with the device); shape and dtype checks still run.
+    """
+    _VALUE_CHECKS.append(False)
+    try:
+        yield
+    finally:
+        _VALUE_CHECKS.pop()
 
 
 def check_tensor(name: str, value, *, min_ndim: int = 0, finite: bool = True) -> Tensor:
@@ -23,7 +41,7 @@ def check_tensor(name: str, value, *, min_ndim: int = 0, finite: bool = True) ->
         raise ValueError(f"`{name}` must have a floating dtype, got {value.dtype}")
     if value.ndim < min_ndim:
         raise ValueError(f"`{name}` must have at least {min_ndim} dimension(s), got shape {tuple(value.shape)}")
-    if finite and not bool(torch.isfinite(value.detach()).all()):
+    if finite and _VALUE_CHECKS[-1] and not bool(torch.isfinite(value.detach()).all()):
         raise ValueError(f"`{name}` contains NaN or infinite entries")
     return value
 
