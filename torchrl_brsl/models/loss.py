@@ -102,12 +102,18 @@ class WorldModelLoss(LossModule):
 
     def _read(self, tensordict: TensorDictBase) -> tuple[Tensor, ...]:
         keys = self.tensor_keys
-        model = self.ensemble
-        obs = tensordict.get(keys.observation)
-        action = tensordict.get(keys.action)
-        next_obs = tensordict.get(("next", keys.observation))
-        reward = tensordict.get(("next", keys.reward)) if model.predict_reward else None
-        return obs, action, next_obs, reward
+        needed = [keys.observation, keys.action, ("next", keys.observation)]
+        if self.ensemble.predict_reward:
+            needed.append(("next", keys.reward))
+        values = []
+        for key in needed:
+            value = tensordict.get(key, None)
+            if value is None:
+                raise KeyError(f"WorldModelLoss: the TensorDict has no {key!r} (keys are set with `set_keys`)")
+            values.append(value)
+        if len(values) == 3:
+            values.append(None)
+        return tuple(values)
 
     def _member_batches(self, tensordict: TensorDictBase) -> tuple[Tensor, Tensor, Tensor]:
         """``(observation [E, N, d], action [E, N, m], normalised target [E, N, o])``."""
