@@ -1,0 +1,230 @@
+"""Pieces shared by the recipes: task envs, offline data and the safety layer, TD3 networks, runs.
+
+A run directory (``runs/<task>/<method>/seed<k>/``) holds everything a run needs to be
+evaluated or resumed: ``config.yaml`` (the resolved config), ``reach.pt`` (the fitted
+reachability model, BRSL only), ``checkpoint.pt``, the CSV logs under ``logs/`` and the
+evaluation outputs.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import random
+import warnings
+from pathlib import Path
+
+warnings.filterwarnings("ignore", category=DeprecationWarning, module="torchrl")
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+from omegaconf import DictConfig, OmegaConf  # noqa: E402
+from tensordict.nn import TensorDictModule, TensorDictSequential  # noqa: E402
+from torch import nn  # noqa: E402
+from torchrl.envs import Compose, RewardSum, TransformedEnv  # noqa: E402
+from torchrl.modules import MLP, TanhModule, ValueOperator  # noqa: E402
+
+import envs  # noqa: E402
+from torchrl_brsl.reach import DataDrivenReach, collect_offline_data, load_offline_data, save_offline_data  # noqa: E402
+from torchrl_brsl.safety import BRSLSafetyLayer, FacetQPAdjuster, Failsafe, GradientAdjuster  # noqa: E402
+from torchrl_brsl.sets import Zonotope  # noqa: E402
+
+CONFIG_DIR = Path(__file__).resolve().parent / "config"
+
+#: keys kept in the replay buffer (``action`` is the executed one)
+BUFFER_KEYS = ["observation", "state", "action", ("next", "observation"), ("next", "state"), ("next", "reward"),
+               ("next", "done"), ("next", "terminated")]
+
+
+def seed_everything(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+def compose_config(overrides: list[str] | None = None, config_name: str = "train") -> DictConfig:
+    """The training config with Hydra overrides, without running Hydra (tests, demo)."""
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base=None):
+        return compose(config_name=config_name, overrides=list(overrides or []))
+
+
+# ----------------------------------------------------------------------------- envs
+def make_base_env(task: DictConfig, seed: int, *, layout: int | None = None, empty: bool = False, **kwargs):
+    """``envs.make`` with the task options of the config (``task.env``, ``task.episode_steps``)."""
+    options = dict(OmegaConf.to_container(task.env, resolve=True) or {})
+    if not empty and task.get("episode_steps"):
+        options["episode_steps"] = int(task.episode_steps)
+    options.update(kwargs)
+    return envs.make(task.name, seed=seed, empty=empty, layout=layout, **options)
+
+
+def make_env(cfg: DictConfig, seed: int, reach: DataDrivenReach | None = None, layout: int | None = None):
+    """The training / evaluation env: the task, an episode-reward counter and, with ``reach``, the layer.
+
+    ``episode_reward`` sums the task's reward before the layer's penalty (the paper's metric).
+    """
+    transforms = [RewardSum(in_keys=["reward"], out_keys=["episode_reward"])]
+    if reach is not None:
+        transforms.append(make_layer(cfg, reach))
+    return TransformedEnv(make_base_env(cfg.task, seed, layout=layout), Compose(*transforms))
+
+
+def task_kind(task: DictConfig) -> str:
+    """``"goal"`` (Table I: diffdrive_nav, quadrotor_nav) or ``"path"`` (Table II)."""
+    return str(task.kind)
+
+
+# ----------------------------------------------------------------------------- offline data and the layer
+def regime_policy(task: DictConfig, max_speed: float):
+    """Random inputs that brake (with the task's braking policy) whenever the speed exceeds ``max_speed``.
+
+    Keeps the offline data in the operating regime: e.g. ``point_circle`` below its 2 m/s speed
+    saturation, where its dynamics are linear and the data-driven sets stay tight.
+    """
+    info = envs.safety_info(task.name)
+    low, high = info.action_low, info.action_high
+
+    def policy(td):
+        state = td["state"]
+        action = low + (high - low) * torch.rand_like(low)
+        if state[list(info.velocity_dims)].norm() > max_speed:
+            action = info.braking_policy(state.double()).float().clamp(low, high)
+        td["action"] = action
+        return td
+
+    return policy
+
+
+def offline_data(task: DictConfig, cache_dir: str | Path, seed: int = 0):
+    """``task.offline.steps`` transitions of random inputs in the empty task, cached on disk."""
+    spec = {"task": task.name, "env": OmegaConf.to_container(task.env, resolve=True),
+            "offline": OmegaConf.to_container(task.offline, resolve=True), "seed": seed}
+    digest = hashlib.sha1(json.dumps(spec, sort_keys=True).encode()).hexdigest()[:10]
+    path = Path(cache_dir) / f"{task.name}-{digest}"
+    if (path / "meta.json").exists():
+        return load_offline_data(path)
+    torch.manual_seed(seed)
+    max_speed = task.offline.get("max_speed")
+    policy = regime_policy(task, float(max_speed)) if max_speed is not None else None
+    data = collect_offline_data(make_base_env(task, seed + 12345, empty=True), int(task.offline.steps), policy=policy)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    save_offline_data(data, path)
+    return data
+
+
+def fit_reach(cfg: DictConfig, cache_dir: str | Path) -> DataDrivenReach:
+    """Offline data (cached) and the fitted reachability model (paper Alg. 2)."""
+    info = envs.safety_info(cfg.task.name)
+    noise = Zonotope(info.noise_center.double(), info.noise_generators.double())
+    return DataDrivenReach.from_data(offline_data(cfg.task, cache_dir, cfg.seed), noise,
+                                     translation_invariant_dims=info.position_dims,
+                                     max_generators=cfg.method.max_generators)
+
+
+def horizon(cfg: DictConfig) -> tuple[int, int]:
+    """``(n_plan, n_brk)``: the task's SafetyInfo unless the task config overrides them."""
+    info = envs.safety_info(cfg.task.name)
+    n_plan = cfg.task.safety.get("n_plan") or info.n_plan
+    n_brk = cfg.task.safety.get("n_brk") or info.n_brk
+    return int(n_plan), int(n_brk)
+
+
+def make_layer(cfg: DictConfig, reach: DataDrivenReach) -> BRSLSafetyLayer:
+    """The safety layer with the task's SafetyInfo; stop tolerance = final set radius + slack."""
+    info = envs.safety_info(cfg.task.name)
+    n_plan, n_brk = horizon(cfg)
+    radius = reach.error_generators_sequence(n_plan + n_brk)[-1, list(info.velocity_dims)].abs().sum(-1)
+    braking = info.braking_policy if cfg.task.safety.braking == "policy" else None
+    adjusters = {"facet_qp": FacetQPAdjuster, "gradient": GradientAdjuster, "none": lambda: None}
+    if cfg.method.adjuster not in adjusters:
+        raise ValueError(f"unknown adjuster {cfg.method.adjuster!r}; choose one of {list(adjusters)}")
+    return BRSLSafetyLayer(
+        reach, Failsafe(info.braking_action, n_brk, policy=braking), n_plan, stop_dims=info.velocity_dims,
+        stop_tolerance=(radius + cfg.method.stop_slack).tolist(), action_low=info.action_low,
+        action_high=info.action_high, adjuster=adjusters[cfg.method.adjuster](), penalty=cfg.method.penalty)
+
+
+# ----------------------------------------------------------------------------- TD3 networks
+def make_actor(env, hidden) -> TensorDictSequential:
+    """Deterministic actor ``observation -> action``, squashed into the action bounds."""
+    spec = env.full_action_spec["action"]
+    net = MLP(in_features=env.observation_spec["observation"].shape[-1], out_features=spec.shape[-1],
+              num_cells=list(hidden), activation_class=nn.ReLU)
+    return TensorDictSequential(TensorDictModule(net, in_keys=["observation"], out_keys=["param"]),
+                                TanhModule(in_keys=["param"], out_keys=["action"], spec=spec))
+
+
+def make_qvalue(env, hidden) -> ValueOperator:
+    """Critic ``(observation, action) -> state_action_value``."""
+    in_features = env.observation_spec["observation"].shape[-1] + env.full_action_spec["action"].shape[-1]
+    net = MLP(in_features=in_features, out_features=1, num_cells=list(hidden), activation_class=nn.ReLU)
+    return ValueOperator(net, in_keys=["observation", "action"], out_keys=["state_action_value"])
+
+
+def make_planner(cfg: DictConfig, policy, env):
+    """``method.planner``: ``none`` (the action is a one-step plan) or ``ensemble``.
+
+    ``ensemble`` returns ``(planner, world_model, loss, optimiser)``: a probabilistic ensemble
+    (paper Sec. IV: 4 layers of 200, leaky ReLU) trained on the replay buffer, through which
+    :class:`RolloutPlanner` rolls ``policy`` for ``n_plan`` steps to write ``plan``.
+    """
+    if cfg.method.planner == "none":
+        return None
+    if cfg.method.planner != "ensemble":
+        raise ValueError(f"unknown planner {cfg.method.planner!r}; choose 'none' or 'ensemble'")
+    try:
+        from torchrl_brsl.models import ProbabilisticEnsemble, WorldModelLoss
+        from torchrl_brsl.planning import RolloutPlanner
+    except ImportError as error:
+        raise NotImplementedError("method.planner=ensemble needs torchrl_brsl.models and torchrl_brsl.planning, "
+                                  "which this installation does not provide; use method.planner=none") from error
+    ens = cfg.method.ensemble
+    model = ProbabilisticEnsemble(env.observation_spec["observation"].shape[-1],
+                                  env.full_action_spec["action"].shape[-1], ensemble_size=ens.size,
+                                  hidden_size=ens.hidden_size, num_layers=ens.num_layers)
+    planner = RolloutPlanner(policy, model, n_plan=horizon(cfg)[0])
+    return planner, model, WorldModelLoss(model), torch.optim.Adam(model.parameters(), lr=ens.lr)
+
+
+# ----------------------------------------------------------------------------- runs on disk
+def load_run(run_dir: str | Path):
+    """``(cfg, actor, reach)`` of a trained run (``reach`` is None for methods without the layer)."""
+    run_dir = Path(run_dir)
+    cfg = OmegaConf.load(run_dir / "config.yaml")
+    reach = DataDrivenReach.load(run_dir / "reach.pt") if cfg.method.layer else None
+    env = make_env(cfg, seed=0, reach=reach)
+    actor = make_actor(env, cfg.hidden)
+    state = torch.load(run_dir / "checkpoint.pt", map_location="cpu", weights_only=False)
+    actor.load_state_dict(state["actor"])
+    env.close()
+    return cfg, actor, reach
+
+
+def load_config(task_dir: str | Path, method: str) -> DictConfig:
+    """The config of the first run of ``method`` under ``task_dir``."""
+    return OmegaConf.load(runs_of(task_dir)[method][0] / "config.yaml")
+
+
+def runs_of(task_dir: str | Path) -> dict[str, list[Path]]:
+    """``{method: [run dirs]}`` under ``<root>/<task>/<method>/seed<k>``."""
+    found: dict[str, list[Path]] = {}
+    for config in sorted(Path(task_dir).glob("*/seed*/config.yaml")):
+        found.setdefault(config.parent.parent.name, []).append(config.parent)
+    return found
+
+
+def read_scalar(run_dir: str | Path, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(steps, values)`` of one scalar from a run's CSV log (TorchRL ``CSVLogger`` layout)."""
+    files = list(Path(run_dir, "logs").glob(f"*/scalars/{name}.csv"))
+    if not files:
+        return np.zeros(0), np.zeros(0)
+    rows = np.loadtxt(files[0], delimiter=",", ndmin=2)
+    return (rows[:, 0], rows[:, 1]) if rows.size else (np.zeros(0), np.zeros(0))
+
+
+def threads(n: int) -> None:
+    """Small MLPs run several times faster on one thread than on two."""
+    torch.set_num_threads(int(n))
+    os.environ.setdefault("OMP_NUM_THREADS", str(n))

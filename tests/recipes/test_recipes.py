@@ -1,0 +1,123 @@
+"""Smoke runs of the recipes on tiny budgets, and the safety of BRSL training (MuJoCo contacts)."""
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from recipes import common
+from recipes.compare import compare
+from recipes.evaluate import evaluate_run, main as evaluate_main
+from recipes.train import train
+
+TINY = ["frames_per_batch=100", "init_random_frames=200", "batch_size=64", "hidden=[32,32]",
+        "checkpoint.every_frames=200", "progress=false", "task.eval_layouts=2"]
+
+
+def config(tmp, task, method, frames, *extra):
+    return common.compose_config([f"task={task}", f"method={method}", f"root={tmp}", f"total_frames={frames}",
+                                  *TINY, *extra])
+
+
+def run_dir(tmp, task, method, seed=0):
+    return Path(tmp) / task / method / f"seed{seed}"
+
+
+@pytest.fixture(scope="module")
+def point_boxes_runs(tmp_path_factory):
+    """BRSL and TD3 trained for 600 frames on point_boxes (linear variant), BRSL then resumed to 800."""
+    tmp = tmp_path_factory.mktemp("runs")
+    torch.set_num_threads(1)
+    brsl = train(config(tmp, "point_boxes", "brsl", 600), run_dir(tmp, "point_boxes", "brsl"))
+    resumed = train(config(tmp, "point_boxes", "brsl", 800), run_dir(tmp, "point_boxes", "brsl"))
+    td3 = train(config(tmp, "point_boxes", "td3", 600), run_dir(tmp, "point_boxes", "td3"))
+    return tmp, brsl, resumed, td3
+
+
+def test_brsl_training_never_collides(point_boxes_runs):
+    _, brsl, resumed, td3 = point_boxes_runs
+    assert brsl["totals"]["frames"] == 600
+    assert brsl["totals"]["collisions"] == 0 and resumed["totals"]["collisions"] == 0
+    # the layer was active, and the same exploration without it collides: the check is meaningful
+    assert brsl["totals"]["interventions"] > 0
+    assert td3["totals"]["collisions"] > 0
+
+
+def test_runs_write_config_reach_checkpoint_and_logs(point_boxes_runs):
+    tmp = point_boxes_runs[0]
+    brsl, td3 = run_dir(tmp, "point_boxes", "brsl"), run_dir(tmp, "point_boxes", "td3")
+    for path in ("config.yaml", "reach.pt", "checkpoint.pt"):
+        assert (brsl / path).exists()
+    assert not (td3 / "reach.pt").exists()
+    steps, rewards = common.read_scalar(brsl, "train/episode_reward")
+    assert len(steps) > 0 and torch.isfinite(torch.as_tensor(rewards)).all()
+    for name in ("brsl/intervention_rate", "brsl/failsafe_rate", "brsl/compute_time_ms", "train/loss_qvalue",
+                 "train/loss_actor", "train/collisions"):
+        assert len(common.read_scalar(brsl, name)[0]) > 0, name
+    assert len(common.read_scalar(td3, "brsl/intervention_rate")[0]) == 0
+
+
+def test_resume_continues_from_the_checkpoint(point_boxes_runs):
+    tmp, brsl, resumed, _ = point_boxes_runs
+    assert resumed["totals"]["frames"] == 800
+    assert resumed["totals"]["updates"] > brsl["totals"]["updates"]
+    state = torch.load(run_dir(tmp, "point_boxes", "brsl") / "checkpoint.pt", weights_only=False)
+    assert state["frames"] == 800
+    steps, _ = common.read_scalar(run_dir(tmp, "point_boxes", "brsl"), "train/collisions")
+    assert steps.max() == 800 and len(set(steps.tolist())) == len(steps)  # logs continued, not restarted
+    # a finished run returns at once
+    again = train(config(tmp, "point_boxes", "brsl", 800), run_dir(tmp, "point_boxes", "brsl"))
+    assert again["totals"]["frames"] == 800
+
+
+def test_evaluate_and_compare(point_boxes_runs, capsys):
+    tmp = point_boxes_runs[0]
+    result = evaluate_run(run_dir(tmp, "point_boxes", "brsl"))
+    assert result["episodes"] == 2 and result["collision_rate"] == 0.0
+    assert (run_dir(tmp, "point_boxes", "brsl") / "eval.md").exists()
+    evaluate_main([str(run_dir(tmp, "point_boxes", "td3")), "--episodes", "1"])
+    out = capsys.readouterr().out
+    assert "Table II" in out and "Compute Time [ms]" in out
+    text = compare(Path(tmp) / "point_boxes", reuse=True)
+    assert "| brsl | td3 |" in text.splitlines()[2].replace("  ", " ")
+    for name in ("comparison.csv", "comparison.md", "reward.png"):
+        assert (Path(tmp) / "point_boxes" / name).exists()
+
+
+def test_point_circle_layer_accepts_plans(tmp_path):
+    """With offline data below the speed saturation and n_brk = 12 the sets are small enough to move."""
+    out = train(config(tmp_path, "point_circle", "brsl", 200, "init_random_frames=200"),
+                run_dir(tmp_path, "point_circle", "brsl"))
+    assert out["metrics"]["brsl/failsafe_rate"] < 0.5
+    assert out["metrics"]["train/speed"] > 0.05
+
+
+def test_goal_task_table(tmp_path):
+    train(config(tmp_path, "diffdrive_nav", "td3", 100, "init_random_frames=100", "task.episode_steps=30"),
+          run_dir(tmp_path, "diffdrive_nav", "td3"))
+    result = evaluate_run(run_dir(tmp_path, "diffdrive_nav", "td3"), episodes=1)
+    assert 0.0 <= result["goal_rate"] <= 100.0
+    assert "Table I" in compare(tmp_path / "diffdrive_nav", reuse=True)
+
+
+def test_ensemble_planner(tmp_path):
+    pytest.importorskip("torchrl_brsl.planning")
+    out = train(config(tmp_path, "point_boxes", "brsl", 300, "method.planner=ensemble", "method.ensemble.size=2",
+                       "method.ensemble.hidden_size=32", "method.ensemble.updates_per_batch=2"),
+                run_dir(tmp_path, "point_boxes", "brsl"))
+    assert out["totals"]["collisions"] == 0
+    assert len(common.read_scalar(run_dir(tmp_path, "point_boxes", "brsl"), "train/loss_world_model")[0]) > 0
+
+
+def test_unknown_planner_is_rejected(tmp_path):
+    cfg = config(tmp_path, "point_boxes", "brsl", 100, "method.planner=mpc")
+    with pytest.raises(ValueError, match="planner"):
+        train(cfg, run_dir(tmp_path, "point_boxes", "brsl"))
+
+
+def test_hydra_entry_point(tmp_path):
+    cmd = [sys.executable, "-m", "recipes.train", "task=point_boxes", "method=td3", f"root={tmp_path}",
+           "total_frames=100", "init_random_frames=100", *TINY[:1], *TINY[2:5]]
+    subprocess.run(cmd, check=True, capture_output=True, cwd=Path(__file__).resolve().parents[2])
+    assert (run_dir(tmp_path, "point_boxes", "td3") / "checkpoint.pt").exists()
