@@ -27,7 +27,7 @@ ROWS = {
     "goal": [("goal_rate", "Goal Rate [%]"), ("collision_rate", "Collision Rate [%]"),
              ("speed", "Mean/Max Speed [m/s]"), ("mean_reward", "Mean Reward"),
              ("compute_time", "Compute Time [ms]")],
-    "path": [("collision_rate", "Collisions [%]"), ("mean_speed", "Mean Speed [m/s]"),
+    "path": [("collision_rate", "Collisions [% of episodes]"), ("mean_speed", "Mean Speed [m/s]"),
              ("max_speed", "Max Speed [m/s]"), ("mean_reward", "Mean Reward"),
              ("compute_time", "Compute Time [ms]")],
 }
@@ -36,9 +36,9 @@ ROWS = {
 def run_episodes(cfg, actor, reach, episodes: int | None = None, seed: int = 10_000, video_path=None) -> dict:
     """One deterministic episode per evaluation layout; returns the table's metrics.
 
-    Collision rate: episodes with at least one contact (goal tasks end on contact); for path
-    tasks, whose episodes continue after a contact (``point_circle``), the share of steps in
-    contact. Compute time: actor forward pass plus the layer's time, per step.
+    Collision rate: share of episodes with at least one contact; ``contact_steps`` adds the share
+    of steps in contact (episodes of ``point_circle`` continue after a contact). Compute time:
+    actor forward pass plus the layer's time, per step.
     """
     n = int(episodes or cfg.task.eval_layouts)
     rewards, goals, collided, contact_steps, speeds, times, interventions, failsafes = [], [], [], [], [], [], [], []
@@ -75,13 +75,12 @@ def run_episodes(cfg, actor, reach, episodes: int | None = None, seed: int = 10_
         env.close()
     if frames and all(f is not None for f in frames):
         _write_gif(frames, video_path)
-    kind = common.task_kind(cfg.task)
     times = np.array(times)
     result = {
         "method": cfg.method.name, "task": cfg.task.name, "episodes": n,
         "goal_rate": 100 * float(np.mean(goals)),
-        "collision_rate": 100 * float(np.mean(collided) if kind == "goal" else np.mean(contact_steps)),
-        "episodes_with_collision": int(np.sum(collided)),
+        "collision_rate": 100 * float(np.mean(collided)),
+        "contact_steps": 100 * float(np.mean(contact_steps)),
         "mean_speed": float(np.mean(speeds)), "max_speed": float(np.max(speeds)),
         "mean_reward": float(np.mean(rewards)),
         "compute_time_mean": float(times.mean()), "compute_time_std": float(times.std()),
@@ -113,7 +112,7 @@ def cell(result: dict, key: str) -> str:
         return f"{result['mean_speed']:.2f} / {result['max_speed']:.2f}"
     if key == "compute_time":
         return f"{result['compute_time_mean']:.2f} ± {result['compute_time_std']:.2f}"
-    if key in ("goal_rate", "collision_rate"):
+    if key in ("goal_rate", "collision_rate", "contact_steps"):
         return f"{result[key]:.1f}"
     return f"{result[key]:.2f}"
 
@@ -124,8 +123,9 @@ def table(results: list[dict], kind: str) -> str:
     title = "Table I (goal-based)" if kind == "goal" else "Table II (path following)"
     lines = [f"**{title}: {results[0]['task']}, {results[0]['episodes']} evaluation layouts**", "",
              "| | " + " | ".join(names) + " |", "|---" * (len(names) + 1) + "|"]
-    for key, label in ROWS[kind] + [("intervention_rate", "Interventions [share of steps]"),
-                                    ("failsafe_rate", "Failsafe [share of steps]")]:
+    extra = [("contact_steps", "Steps in contact [%]"), ("intervention_rate", "Interventions [share of steps]"),
+             ("failsafe_rate", "Failsafe [share of steps]")]
+    for key, label in ROWS[kind] + extra:
         lines.append(f"| {label} | " + " | ".join(cell(r, key) for r in results) + " |")
     return "\n".join(lines)
 
