@@ -147,10 +147,18 @@ class ProbabilisticEnsemble(nn.Module):
             ``(mean, log_var)``, each ``[E, N, o]``, in normalised target units, ``log_var``
             soft-clamped to the learnable bounds.
         """
+        return self._heads(self._trunk(x))
+
+    def _trunk(self, x: Tensor) -> Tensor:
+        """The layers: ``x [E, N, d + m]`` or ``[N, d + m]`` -> raw ``[E, N, 2 o]``."""
         h = x
         for layer in self.layers[:-1]:
             h = F.leaky_relu(layer(h), self.negative_slope)
-        mean, log_var = self.layers[-1](h).chunk(2, dim=-1)
+        return self.layers[-1](h)
+
+    def _heads(self, raw: Tensor) -> tuple[Tensor, Tensor]:
+        """Raw ``[..., 2 o]`` -> ``(mean, soft-clamped log_var)``, each ``[..., o]``."""
+        mean, log_var = raw.chunk(2, dim=-1)
         log_var = self.max_log_var - F.softplus(self.max_log_var - log_var)
         log_var = self.min_log_var + F.softplus(log_var - self.min_log_var)
         return mean, log_var
@@ -271,9 +279,8 @@ class ProbabilisticEnsemble(nn.Module):
             raise ValueError(f"`observation` must be [B, d], got {tuple(observation.shape)}")
         n = observation.shape[0]
         member = torch.as_tensor(member, device=observation.device).long().reshape(-1).expand(n)
-        mean, log_var = self.normalized_prediction(observation, action)  # [E, B, o]
-        rows = torch.arange(n, device=observation.device)
-        mean, log_var = mean[member, rows], log_var[member, rows]  # [B, o]
+        raw = self._trunk(self._model_input(observation, action))  # [E, B, 2 o]
+        mean, log_var = self._heads(raw[member, torch.arange(n, device=observation.device)])  # [B, o]
         if sample:
             eps = torch.randn(mean.shape, generator=generator, device=mean.device, dtype=mean.dtype)
             mean = mean + (0.5 * log_var).exp() * eps
