@@ -7,7 +7,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchrl_brsl.safety.plan_check import PlanChecker, PlanEvaluation
+from torchrl_brsl.safety.plan_check import AffineRollout, PlanChecker, PlanEvaluation
 
 
 class Adjustment(NamedTuple):
@@ -62,6 +62,26 @@ class GradientAdjuster:
                  reference: Tensor | None = None) -> Adjustment:
         """Adjust ``plan`` ``[B, P, m]``; ``reference`` (the previous safe plan) is not used."""
         start = time.perf_counter() if start is None else start
+        affine = checker._affine_for(x0, plan) if self._analytic and not plan.requires_grad else None
+        if affine is None:
+            return self._autograd(checker, x0, plan, obstacle_centers, obstacle_generators, obstacle_mask, start)
+        with torch.no_grad():
+            return self._analytic_steps(checker, affine, x0, plan, obstacle_centers, obstacle_generators,
+                                        obstacle_mask, start)
+
+    _analytic = True  # closed-form gradients when the centres are affine in the plan
+
+    def _step(self, plan: Tensor, grad: Tensor, active: Tensor, low: Tensor, high: Tensor,
+              scale: Tensor) -> Tensor:
+        """One projected step along ``-grad`` for the ``active`` plans (max-norm in action-range units)."""
+        grad = grad * scale
+        norm = grad.flatten(1).abs().amax(-1).clamp_min(1e-12).view(-1, 1, 1)
+        moved = torch.minimum(torch.maximum(plan - self.step_size * scale * grad / norm, low), high)
+        return torch.where(active.view(-1, 1, 1), moved, plan)
+
+    def _autograd(self, checker: PlanChecker, x0: Tensor, plan: Tensor, obstacle_centers: Tensor,
+                  obstacle_generators: Tensor, obstacle_mask: Tensor, start: float) -> Adjustment:
+        """Gradients by autograd through the rollout (any braking policy)."""
         low, high = checker.action_low, checker.action_high
         scale = (high - low).clamp_min(1e-12)
         iterations = torch.zeros(plan.shape[0], dtype=torch.long, device=plan.device)
@@ -76,14 +96,49 @@ class GradientAdjuster:
             shortfall = torch.relu(1 + self.target_margin - finite).sum((-1, -2))
             loss = (shortfall + torch.relu(evaluation.stop_excess)) * active
             (grad,) = torch.autograd.grad(loss.sum(), plan)
-            grad = grad * scale
-            norm = grad.flatten(1).abs().amax(-1).clamp_min(1e-12).view(-1, 1, 1)
             with torch.no_grad():
-                moved = torch.minimum(torch.maximum(plan - self.step_size * scale * grad / norm, low), high)
-                plan = torch.where(active.view(-1, 1, 1), moved, plan)
+                plan = self._step(plan, grad, active, low, high, scale)
                 iterations += active.long()
         evaluation = PlanEvaluation(*(t.detach() for t in evaluation))
         return Adjustment(plan.detach(), evaluation, iterations)
+
+    def _analytic_steps(self, checker: PlanChecker, affine: AffineRollout, x0: Tensor, plan: Tensor,
+                        obstacle_centers: Tensor, obstacle_generators: Tensor, obstacle_mask: Tensor,
+                        start: float) -> Adjustment:
+        """The same iteration with the gradient in closed form (open-loop braking).
+
+        A value ``v = |w_f* . (c_o - p)|`` (facet ``f*`` attaining the gauge) has gradient
+        ``-sign(w_f* . (c_o - p)) w_f* J`` in the plan, with ``J`` the (exact, constant)
+        Jacobian of the position ``p`` of its set; likewise the stop excess through the final
+        centre. Every iterate is still checked exactly by :meth:`PlanChecker.evaluate`.
+        """
+        low, high = checker.action_low, checker.action_high
+        scale = (high - low).clamp_min(1e-12)
+        iterations = torch.zeros(plan.shape[0], dtype=torch.long, device=plan.device)
+        position_jacobian = affine.position_jacobian.flatten(0, 1)  # [T d, N]
+        threshold = 1 + self.target_margin
+        for iteration in range(self.max_iterations + 1):
+            evaluation, gauge = checker._evaluate(x0, plan, obstacle_centers, obstacle_generators, obstacle_mask,
+                                                  detail=True)
+            active = ~evaluation.safe
+            out_of_time = self.time_budget is not None and time.perf_counter() - start > self.time_budget
+            if iteration == self.max_iterations or out_of_time or not bool(active.any()):
+                break
+            values = evaluation.values  # masked: inf; non-finite: 0 (no gradient, as with autograd)
+            picked = gauge.products.gather(-1, gauge.best.unsqueeze(-1)).squeeze(-1)  # [B, T, K]
+            coef = torch.where((values < threshold) & (values > 0), picked.sign(), 0.0)
+            weights = _picked_weights(checker, gauge.best)  # [B, T, K, d]
+            per_step = (coef.unsqueeze(-2) @ weights).flatten(1)  # [B, T d]
+            grad = per_step @ position_jacobian  # [B, N]
+            if checker.stop_dims:
+                final = _stop_centres(checker, evaluation.centers)  # [B, s]
+                excess = evaluation.stop_excess.unsqueeze(-1)
+                attains = (final.abs() - checker._stop_room) == excess  # amax: shared equally between ties
+                share = attains * (final.sign() * (excess > 0)) / attains.sum(-1, keepdim=True).clamp_min(1)
+                grad = grad.addmm_(share, affine.stop_jacobian)
+            plan = self._step(plan, grad.view_as(plan), active, low, high, scale)
+            iterations += active.long()
+        return Adjustment(plan, evaluation, iterations)
 
 
 class FacetQPAdjuster:
@@ -108,7 +163,7 @@ class FacetQPAdjuster:
             when the exact check rejects it.
     """
 
-    def __init__(self, iterations: int = 50, target_margin: float = 0.05, backtracking: int = 4):
+    def __init__(self, iterations: int = 20, target_margin: float = 0.05, backtracking: int = 4):
         if iterations < 1:
             raise ValueError(f"`iterations` must be positive, got {iterations}")
         self.iterations = int(iterations)
@@ -120,57 +175,64 @@ class FacetQPAdjuster:
                  reference: Tensor | None = None) -> Adjustment:
         if reference is None:
             raise ValueError("FacetQPAdjuster needs the `reference` plan (the previous safe plan)")
-        n_envs, horizon = plan.shape[:2]
-        reference = reference[:, :horizon].to(plan)
-        low, high = checker.action_low, checker.action_high
         with torch.no_grad():
-            ref_eval = checker.evaluate(x0, reference, obstacle_centers, obstacle_generators, obstacle_mask)
-        jacobian = _centre_jacobian(checker, x0, reference)  # [B, T, n, P, m]
-        pos_jac = jacobian[:, :, checker.position_dims].flatten(-2)  # [B, T, d, N]
-        table = checker.checker(obstacle_generators).table
-        offsets = obstacle_centers.unsqueeze(-3) - ref_eval.centers[..., checker.position_dims].unsqueeze(-2)
-        products = (table.weights @ offsets.unsqueeze(-1)).squeeze(-1)  # [B, T, K, F]
-        best = products.abs().argmax(-1, keepdim=True)
-        weight = table.weights.gather(-2, best.unsqueeze(-1).expand(*best.shape, table.weights.shape[-1])).squeeze(-2)
-        sign = products.gather(-1, best).squeeze(-1).sign()
-        value_ref = products.gather(-1, best).squeeze(-1).abs()
-        level = torch.minimum(torch.full_like(value_ref, 1 + self.target_margin), value_ref)
-        # s w . (c_o - p_ref - J dz) >= level   <=>   (s w J) dz <= s w . Δ_ref - level
-        rows = [(sign.unsqueeze(-1) * weight).unsqueeze(-2) @ pos_jac.unsqueeze(2)]  # [B, T, K, 1, N]
-        rows = rows[0].squeeze(-2).flatten(1, 2)  # [B, T K, N]
-        bounds = (value_ref - level).flatten(1)
-        active = obstacle_mask.unsqueeze(1).expand(-1, ref_eval.values.shape[1], -1).flatten(1)
-        rows = torch.where(active.unsqueeze(-1), rows, torch.zeros_like(rows))
-        bounds = torch.where(active, bounds, torch.ones_like(bounds))
-        eye = torch.eye(rows.shape[-1], dtype=rows.dtype, device=rows.device).expand(n_envs, -1, -1)
-        ref_flat = reference.flatten(1)
-        box_rows = torch.cat((eye, -eye), dim=1)
-        box_bounds = torch.cat((high.repeat(horizon) - ref_flat, ref_flat - low.repeat(horizon)), dim=1)
-        all_rows, all_bounds = [rows, box_rows], [bounds, box_bounds]
-        if checker.stop_dims:
+            return self._adjust(checker, x0, plan.detach(), obstacle_centers, obstacle_generators, obstacle_mask,
+                                reference.detach())
+
+    def _adjust(self, checker: PlanChecker, x0: Tensor, plan: Tensor, obstacle_centers: Tensor,
+                obstacle_generators: Tensor, obstacle_mask: Tensor, reference: Tensor) -> Adjustment:
+        n_envs, horizon = plan.shape[:2]
+        reference = reference[:, :horizon]
+        if reference.dtype != plan.dtype or reference.device != plan.device:
+            reference = reference.to(plan)
+        low, high = checker.action_low, checker.action_high
+        ref_eval, gauge = checker._evaluate(x0, reference, obstacle_centers, obstacle_generators, obstacle_mask,
+                                            detail=True)
+        affine = checker._affine_for(x0, reference)
+        if affine is None:  # feedback braking: linearise the tail by finite differences
+            jacobian = _centre_jacobian(checker, x0, reference)  # [B, T, n, P, m]
+            pos_jac = jacobian[:, :, checker.position_dims].flatten(-2)  # [B, T, d, N]
             stop_jac = jacobian[:, -1, checker.stop_dims].flatten(-2)  # [B, s, N]
-            stop_ref = ref_eval.centers[:, -1, checker.stop_dims]
-            room = (checker.stop_tolerance - checker.stop_radius).to(stop_ref)
-            all_rows += [stop_jac, -stop_jac]
-            all_bounds += [(room - stop_ref).clamp_min(0), (room + stop_ref).clamp_min(0)]
-        A, b = torch.cat(all_rows, dim=1), torch.cat(all_bounds, dim=1).clamp_min(0)
-        # rows that no step inside the action box can make active are dropped (for every env)
-        reach_of_box = (A.abs() * (high - low).repeat(horizon)).sum(-1)
-        needed = (reach_of_box > b).any(0)
-        A, b = A[:, needed], b[:, needed]
-        target = (torch.minimum(torch.maximum(plan, low), high) - reference).flatten(1)
+        else:  # exact and shared by all envs
+            pos_jac, stop_jac = affine.position_jacobian, affine.stop_jacobian  # [T, d, N], [s, N]
+        # lock each (step, obstacle) pair to the facet attaining its value under the reference:
+        # s w . (c_o - p_ref - J dz) >= level   <=>   (s w J) dz <= s w . Δ_ref - level
+        picked = gauge.products.gather(-1, gauge.best.unsqueeze(-1)).squeeze(-1)  # [B, T, K]
+        weights = _picked_weights(checker, gauge.best) * picked.sign().unsqueeze(-1)  # [B, T, K, d]
+        rows = (weights @ pos_jac).flatten(1, 2)  # [B, T K, N]
+        value_ref = picked.abs()
+        bounds = torch.where(obstacle_mask.unsqueeze(-2), (value_ref - (1 + self.target_margin)).clamp_min(0),
+                             float("inf")).flatten(1)  # masked pairs: never a constraint
+        if checker.stop_dims:
+            stop_ref = _stop_centres(checker, ref_eval.centers)
+            room = checker._stop_room * (1 - 1e-9)  # not exactly on the boundary, where rounding decides
+            stop_jac = stop_jac.expand(n_envs, *stop_jac.shape[-2:])
+            rows = torch.cat((rows, stop_jac, -stop_jac), dim=1)
+            bounds = torch.cat((bounds, room - stop_ref, room + stop_ref), dim=1)
+        bounds = bounds.clamp_min(0)
+        # rows that no step inside the action box can make active are dropped (zeroed where only
+        # other envs of the batch need them, so that each env's result does not depend on the batch)
+        span, box_rows, upper, lower = self._box(checker, horizon, plan)
+        needed = rows.abs() @ span > bounds
+        kept = needed.any(0)
+        rows, bounds = (rows * needed.unsqueeze(-1))[:, kept], bounds[:, kept]
+        ref_flat = reference.flatten(1)
+        A = torch.cat((rows, box_rows.expand(n_envs, -1, -1)), dim=1)
+        b = torch.cat((bounds, (upper - ref_flat).clamp_min(0), (ref_flat - lower).clamp_min(0)), dim=1)
+        target = (torch.clamp(plan, low, high) - reference).flatten(1)
         step = _project_polytope(A, b, target, self.iterations)
         # keep the linearised constraints exactly: scale back towards the reference
         excess = (A @ step.unsqueeze(-1)).squeeze(-1)
-        scale = torch.where(excess > b, b / excess.clamp_min(1e-12), torch.ones_like(b)).amin(-1).clamp(0, 1)
-        step = step * scale.unsqueeze(-1)
+        scale = torch.where(excess > b, b / excess.clamp_min(1e-12), 1.0).amin(-1).clamp(0, 1)
+        step = (step * scale.unsqueeze(-1)).view_as(reference)
         best_plan, best_eval = reference, ref_eval
         accepted = torch.zeros(n_envs, dtype=torch.bool, device=plan.device)
         tries = torch.zeros(n_envs, dtype=torch.long, device=plan.device)
         for attempt in range(self.backtracking + 1):
-            candidate = reference + step.view_as(reference) / (2 ** attempt)
-            with torch.no_grad():
-                evaluation = checker.evaluate(x0, candidate, obstacle_centers, obstacle_generators, obstacle_mask)
+            candidate = reference + step / (2 ** attempt) if attempt else reference + step
+            evaluation = checker.evaluate(x0, candidate, obstacle_centers, obstacle_generators, obstacle_mask)
+            if attempt == 0 and bool(evaluation.safe.all()):  # the usual case: no merging needed
+                return Adjustment(candidate, evaluation, torch.ones_like(tries))
             take = evaluation.safe & ~accepted
             tries += (~accepted).long()
             best_plan = torch.where(take.view(-1, 1, 1), candidate, best_plan)
@@ -180,6 +242,19 @@ class FacetQPAdjuster:
             if bool(accepted.all()):
                 break
         return Adjustment(best_plan, best_eval, tries)
+
+    @staticmethod
+    def _box(checker: PlanChecker, horizon: int, like: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Per plan length: the action range per variable ``[N]``, the box rows ``[2N, N]`` and the
+        upper and lower bounds ``[N]`` (cached on the checker, whose bounds are fixed)."""
+        key = ("box", horizon, like.dtype, like.device)
+        cached = checker._affine.get(key)
+        if cached is None:
+            low, high = checker.action_low.to(like), checker.action_high.to(like)
+            eye = torch.eye(horizon * low.shape[0], dtype=like.dtype, device=like.device)
+            cached = ((high - low).repeat(horizon), torch.cat((eye, -eye)), high.repeat(horizon), low.repeat(horizon))
+            checker._affine[key] = cached
+        return cached
 
 
 def _centre_jacobian(checker: PlanChecker, x0: Tensor, plan: Tensor, eps: float = 1e-6) -> Tensor:
@@ -203,10 +278,13 @@ def _project_polytope(A: Tensor, b: Tensor, target: Tensor, iterations: int) -> 
     """Approximately solve ``min ||z - target||^2 s.t. A z <= b`` (batched).
 
     Accelerated projected gradient on the dual ``min_{l >= 0} 1/2 l^T A A^T l - l^T (A t - b)``,
-    ``z = t - A^T l``. ``A`` ``[B, C, N]``, ``b`` ``[B, C]``, ``target`` ``[B, N]``.
+    ``z = t - A^T l``, with step ``1 / ||A||_2^2`` (the exact Lipschitz constant, from the
+    ``N x N`` matrix ``A^T A``). ``A`` ``[B, C, N]``, ``b`` ``[B, C]``, ``target`` ``[B, N]``.
     """
-    gram = A @ A.transpose(-1, -2)
-    lipschitz = gram.diagonal(dim1=-2, dim2=-1).sum(-1).clamp_min(1e-12).view(-1, 1, 1)  # trace >= max eigenvalue
+    At = A.transpose(-1, -2)
+    gram = A @ At
+    largest = torch.linalg.eigvalsh(At @ A)[..., -1] if A.shape[-2] else gram.new_zeros(A.shape[0])
+    lipschitz = (largest * (1 + 1e-9)).clamp_min(1e-12).view(-1, 1, 1)
     step_matrix = torch.eye(gram.shape[-1], dtype=A.dtype, device=A.device) - gram / lipschitz
     offset = ((A @ target.unsqueeze(-1)) - b.unsqueeze(-1)) / lipschitz  # [B, C, 1]
     lam = torch.zeros_like(offset)
@@ -214,6 +292,18 @@ def _project_polytope(A: Tensor, b: Tensor, target: Tensor, iterations: int) -> 
     for _ in range(iterations):
         new = torch.baddbmm(offset, step_matrix, momentum).clamp_min_(0)
         t_next = (1 + (1 + 4 * t * t) ** 0.5) / 2
-        momentum = torch.add(new, new - lam, alpha=(t - 1) / t_next)
+        momentum = torch.lerp(new, lam, (1 - t) / t_next)  # new + (t - 1) / t_next (new - lam)
         lam, t = new, t_next
-    return target - (A.transpose(-1, -2) @ lam).squeeze(-1)
+    return target - (At @ lam).squeeze(-1)
+
+
+def _picked_weights(checker: PlanChecker, best: Tensor) -> Tensor:
+    """The facet weights ``w_f`` ``[B, T, K, d]`` at the facet indices ``best`` ``[B, T, K]``."""
+    weights = checker.facet_weights()  # [B, T, K, F, d]
+    index = best.unsqueeze(-1).unsqueeze(-1).expand(*best.shape, 1, weights.shape[-1])
+    return weights.gather(-2, index).squeeze(-2)
+
+
+def _stop_centres(checker: PlanChecker, centers: Tensor) -> Tensor:
+    """The stop dims of the final centres: ``[B, s]``."""
+    return centers[:, -1, checker.stop_dims]

@@ -1,6 +1,7 @@
 """``BRSLSafetyLayer``: the TorchRL transform that makes every executed action safe."""
 from __future__ import annotations
 
+import math
 import time
 from typing import Sequence
 
@@ -118,6 +119,7 @@ class BRSLSafetyLayer(Transform):
         self.diagnostics_key, self.reward_key = diagnostics_key, reward_key
         self._bounds = (action_low, action_high)
         self._checker: PlanChecker | None = None
+        self._holds: dict = {}
         if action_low is not None and action_high is not None:
             _ = self.checker  # validate the settings now rather than at the first step
 
@@ -247,46 +249,67 @@ class BRSLSafetyLayer(Transform):
             raise ValueError(f"`{self.plan_key}` has {proposal.shape[-2]} steps, more than n_plan={self.n_plan}")
         x0 = state.to(dtype)
         plan = proposal.to(dtype)
-        valid = (torch.isfinite(x0).all(-1) & torch.isfinite(plan).flatten(1).all(-1)
-                 & (torch.isfinite(obstacle_centers).flatten(1).all(-1) | ~obstacle_mask.any(-1))
-                 & (torch.isfinite(obstacle_generators).flatten(1).all(-1) | ~obstacle_mask.any(-1)))
-        x0 = torch.where(valid.unsqueeze(-1), x0, torch.zeros_like(x0))
-        plan = torch.where(valid.view(-1, 1, 1), plan, torch.zeros_like(plan))
-        plan = torch.minimum(torch.maximum(plan, checker.action_low), checker.action_high)
-        obstacle_centers = torch.nan_to_num(obstacle_centers)
-        obstacle_generators = torch.nan_to_num(obstacle_generators)
+        # one cheap test for the usual case: a finite total means every entry is finite
+        total = float(x0.sum()) + float(plan.sum()) + float(obstacle_centers.sum()) + float(obstacle_generators.sum())
+        if math.isfinite(total):
+            valid = None
+        else:
+            any_obstacle = obstacle_mask.any(-1)
+            valid = (torch.isfinite(x0).all(-1) & torch.isfinite(plan).flatten(1).all(-1)
+                     & (torch.isfinite(obstacle_centers).flatten(1).all(-1) | ~any_obstacle)
+                     & (torch.isfinite(obstacle_generators).flatten(1).all(-1) | ~any_obstacle))
+            x0 = torch.where(valid.unsqueeze(-1), x0, torch.zeros_like(x0))
+            plan = torch.where(valid.view(-1, 1, 1), plan, torch.zeros_like(plan))
+            obstacle_centers = torch.nan_to_num(obstacle_centers)
+            obstacle_generators = torch.nan_to_num(obstacle_generators)
+        plan = torch.clamp(plan, checker.action_low, checker.action_high)
 
         with torch.no_grad():
             evaluation = checker.evaluate(x0, plan, obstacle_centers, obstacle_generators, obstacle_mask)
-        proposal_safe = evaluation.safe & valid
-        accepted = proposal_safe.clone()
+        proposal_safe = evaluation.safe if valid is None else evaluation.safe & valid
+        accepted = proposal_safe
         actions, values = evaluation.actions, evaluation.values
         iterations = torch.zeros(n_envs, dtype=torch.long, device=state.device)
-        todo = valid & ~proposal_safe
+        todo = ~proposal_safe if valid is None else valid & ~proposal_safe
         if self.adjuster is not None and bool(todo.any()):
-            idx = todo.nonzero().squeeze(-1)
-            adjusted = self.adjuster(checker, x0[idx], plan[idx], obstacle_centers[idx], obstacle_generators[idx],
-                                     obstacle_mask[idx], start=start, reference=safe_plan[idx].to(dtype))
-            accepted[idx] = adjusted.evaluation.safe
-            actions = actions.clone()
-            values = values.clone()
-            actions[idx] = adjusted.evaluation.actions
-            values[idx] = adjusted.evaluation.values
-            iterations[idx] = adjusted.iterations
+            reference = safe_plan.to(dtype)
+            if bool(todo.all()):  # e.g. a single env: no gathering and scattering
+                adjusted = self.adjuster(checker, x0, plan, obstacle_centers, obstacle_generators, obstacle_mask,
+                                         start=start, reference=reference)
+                accepted = adjusted.evaluation.safe
+                actions, values = adjusted.evaluation.actions, adjusted.evaluation.values
+                iterations = adjusted.iterations
+            else:
+                idx = todo.nonzero().squeeze(-1)
+                adjusted = self.adjuster(checker._subset(idx), x0[idx], plan[idx], obstacle_centers[idx],
+                                         obstacle_generators[idx], obstacle_mask[idx], start=start,
+                                         reference=reference[idx])
+                accepted = accepted.clone()
+                accepted[idx] = adjusted.evaluation.safe
+                actions = actions.clone()
+                values = values.clone()
+                actions[idx] = adjusted.evaluation.actions
+                values[idx] = adjusted.evaluation.values
+                iterations[idx] = adjusted.iterations
 
-        fallback = safe_plan.to(dtype)
-        chosen = torch.where(accepted.view(-1, 1, 1), actions, fallback)
+        chosen = torch.where(accepted.view(-1, 1, 1), actions, safe_plan.to(dtype))
         executed = chosen[:, 0]
-        hold = self.failsafe.hold_action.to(chosen).expand(n_envs, 1, -1)
-        next_safe_plan = torch.cat((chosen[:, 1:], hold), dim=1)
+        next_safe_plan = torch.cat((chosen[:, 1:], self._hold(chosen).expand(n_envs, 1, -1)), dim=1)
         diagnostics = {
             "intervened": ~proposal_safe,
             "failsafe": ~accepted,
-            "invalid_input": ~valid,
+            "invalid_input": torch.zeros_like(accepted) if valid is None else ~valid,
             "min_collision_value": values.flatten(1).amin(-1),
             "adjust_iterations": iterations,
         }
         return executed, next_safe_plan, diagnostics
+
+    def _hold(self, like: Tensor) -> Tensor:
+        """The failsafe's hold action in ``like``'s dtype and device (cached)."""
+        key = (like.dtype, like.device)
+        if key not in self._holds:
+            self._holds[key] = self.failsafe.hold_action.to(like)
+        return self._holds[key]
 
     def _obstacle_tensor(self, name: str, value: Tensor | None, n_envs: int, trailing: int) -> Tensor:
         key = f"{self.obstacles_key}/{name}" if isinstance(self.obstacles_key, str) else (*self.obstacles_key, name)

@@ -1,6 +1,7 @@
 """Reachable sets of a plan plus its failsafe tail, and their safety verdict."""
 from __future__ import annotations
 
+import copy
 from typing import NamedTuple, Sequence
 
 import torch
@@ -36,7 +37,9 @@ class PlanChecker:
     The generators of every reachable set from a measured state do not depend on the plan
     (see :class:`DataDrivenReach`), so their projections onto the obstacle space are reduced
     once here, and the facet table of each (set, obstacle) pair is rebuilt only when the
-    obstacles change. A check then costs the centre recursion and one batched product.
+    obstacles change. With open-loop braking (no braking policy) the centres of all ``T``
+    sets are one affine map of the measured state and the plan, precomputed per plan length,
+    so a check costs one product for the centres and one for the collision values.
 
     Args:
         reach: the fitted reachability model.
@@ -84,6 +87,12 @@ class PlanChecker:
                 "tolerance, shorten the horizon or use tighter offline data.")
         self._obstacle_generators: Tensor | None = None
         self._checker: ZonotopeCollisionChecker | None = None
+        self._columns: tuple[Tensor, ...] = ()
+        self._affine: dict = {}
+        self._position_index = _index(self.position_dims)
+        self._stop_index = _index(self.stop_dims)
+        self._threshold = 1 + self.margin
+        self._stop_room = self.stop_tolerance - self.stop_radius  # stopped: |final centre| <= room
 
     def checker(self, obstacle_generators: Tensor) -> ZonotopeCollisionChecker:
         """The facet table for ``obstacle_generators`` ``[B, K, d, p]`` (rebuilt on change)."""
@@ -91,8 +100,72 @@ class PlanChecker:
         if cached is None or cached.shape != obstacle_generators.shape or not torch.equal(cached, obstacle_generators):
             self._checker = ZonotopeCollisionChecker(self.set_generators.unsqueeze(-3).unsqueeze(0),
                                                      obstacle_generators.unsqueeze(-4))
+            self._columns = tuple(w.contiguous() for w in self._checker.table.weights.unbind(-1))
             self._obstacle_generators = obstacle_generators.clone()
         return self._checker
+
+    def _subset(self, index: Tensor) -> PlanChecker:
+        """A checker for the envs ``index`` of the cached obstacle batch, sharing every other cache.
+
+        Avoids rebuilding the facet table when only some envs of a batch are checked again.
+        """
+        sub = copy.copy(self)
+        if self._checker is not None:
+            table = type(self._checker.table)(*(t[index] for t in self._checker.table))
+            checker = copy.copy(self._checker)
+            checker.table = table
+            checker.batch_shape = table.supports.shape[:-1]
+            sub._checker = checker
+            sub._columns = tuple(c[index] for c in self._columns)
+            sub._obstacle_generators = self._obstacle_generators[index]
+        return sub
+
+    def affine(self, plan_steps: int, dtype: torch.dtype | None = None,
+               device: torch.device | None = None) -> AffineRollout | None:
+        """The centres of plan + braking tail as an affine map of (state, plan), or ``None``.
+
+        Exists when the braking is open-loop (no braking policy): then the whole action
+        sequence, and hence every centre, is affine in the plan. Cached per plan length.
+        """
+        if self.failsafe.policy is not None:
+            return None
+        A = self.reach.state_matrix
+        dtype = A.dtype if dtype is None else dtype
+        device = A.device if device is None else device
+        key = (int(plan_steps), dtype, device)
+        if key not in self._affine:
+            self._affine[key] = self._build_affine(int(plan_steps)).to(dtype, device)
+        return self._affine[key]
+
+    def _build_affine(self, plan_steps: int) -> AffineRollout:
+        horizon, n, m = self.horizon, self.reach.state_dim, self.reach.action_dim
+        n_tail = horizon - plan_steps
+        if n_tail < 0:
+            raise ValueError(f"the plan has {plan_steps} steps, more than the horizon T={horizon}")
+        powers, transfer, drift = self.reach._transfer(horizon)
+        dtype = powers.dtype
+        hold = torch.minimum(torch.maximum(self.failsafe.hold_action.to(dtype), self.action_low), self.action_high)
+        tail = hold.to(self.action_dtype).to(dtype).expand(n_tail, m).contiguous()
+        n_vars = plan_steps * m
+        constant = transfer[:, n_vars:] @ tail.flatten() + drift.flatten()
+        plan_map = transfer[:, :n_vars].T.contiguous()  # [P m, T n]
+        by_step = plan_map.view(n_vars, horizon, n)
+        return AffineRollout(
+            state_map=powers.reshape(horizon * n, n).T.contiguous(),
+            plan_map=plan_map,
+            constant=constant,
+            tail=tail,
+            position_jacobian=by_step[:, :, self.position_dims].permute(1, 2, 0).contiguous(),
+            stop_jacobian=by_step[:, -1, self.stop_dims].T.contiguous(),
+        )
+
+    def _affine_for(self, x0: Tensor, plan: Tensor) -> AffineRollout | None:
+        """:meth:`affine` when it applies to this batch: open-loop braking, ``x0`` ``[B, n]`` and
+        ``plan`` ``[B, P, m]`` in the model's dtype."""
+        if (self.failsafe.policy is not None or x0.ndim != 2 or plan.ndim != 3
+                or plan.dtype != self.reach.state_matrix.dtype):
+            return None
+        return self.affine(plan.shape[1], plan.dtype, plan.device)
 
     def rollout(self, x0: Tensor, plan: Tensor) -> tuple[Tensor, Tensor]:
         """Nominal centres of ``plan`` followed by braking up to the horizon.
@@ -104,8 +177,15 @@ class PlanChecker:
         Returns:
             ``(actions [B, T, m], centers [B, T, n])``; differentiable w.r.t. ``plan``.
         """
-        n_tail = self.horizon - plan.shape[1]
+        n_tail = self.horizon - plan.shape[-2]
         if self.failsafe.policy is None:  # open-loop braking: the whole sequence is affine in the plan
+            affine = self._affine_for(x0, plan)
+            if affine is not None:
+                n_envs, plan_steps, m = plan.shape
+                centers = torch.addmm(affine.constant, x0.to(plan.dtype), affine.state_map)
+                centers = centers.addmm_(plan.reshape(n_envs, plan_steps * m), affine.plan_map)
+                actions = torch.cat((plan, affine.tail.expand(n_envs, n_tail, m)), dim=1)
+                return actions, centers.view(n_envs, self.horizon, -1)
             hold = torch.minimum(torch.maximum(self.failsafe.hold_action.to(plan), self.action_low), self.action_high)
             actions = torch.cat((plan, hold.to(self.action_dtype).to(plan.dtype).expand(plan.shape[0], n_tail, -1)),
                                 dim=1)
@@ -130,6 +210,10 @@ class PlanChecker:
                  obstacle_mask: Tensor) -> PlanEvaluation:
         """Verify a batch of plans from measured states.
 
+        A pair's value is the closed-form gauge ``max_f |w_f . (c_obstacle - c_set)|`` of the
+        cached facet table; a non-finite value (non-finite or overflowing centres) counts as
+        ``0``, i.e. colliding.
+
         Args:
             x0: ``[B, n]``.
             plan: ``[B, P, m]`` (``P <= T``); the rest of the horizon is the braking tail.
@@ -137,14 +221,81 @@ class PlanChecker:
             obstacle_generators: ``[B, K, d, p]``.
             obstacle_mask: ``[B, K]`` bool, ``True`` for real obstacles.
         """
+        return self._evaluate(x0, plan, obstacle_centers, obstacle_generators, obstacle_mask)[0]
+
+    def _evaluate(self, x0: Tensor, plan: Tensor, obstacle_centers: Tensor, obstacle_generators: Tensor,
+                  obstacle_mask: Tensor, detail: bool = False) -> tuple[PlanEvaluation, Gauge | None]:
+        """:meth:`evaluate`, optionally with the signed facet products and the facet attaining each value."""
         actions, centers = self.rollout(x0, plan)
-        positions = centers[..., self.position_dims]  # [B, T, d]
-        values = self.checker(obstacle_generators).value(positions.unsqueeze(-2), obstacle_centers.unsqueeze(-3))
-        values = torch.where(obstacle_mask.unsqueeze(-2), values, torch.full_like(values, float("inf")))
+        self.checker(obstacle_generators)
+        positions = _take(centers, self._position_index)  # [B, T, d]
+        offsets = obstacle_centers.unsqueeze(-3) - positions.unsqueeze(-2)  # [B, T, K, d]
+        parts = offsets.unsqueeze(-1).unbind(-2)  # d x [B, T, K, 1]
+        products = self._columns[0] * parts[0]  # [B, T, K, F]
+        for column, part in zip(self._columns[1:], parts[1:]):
+            products = products.addcmul_(column, part)
+        if detail:
+            values, best = products.abs().max(-1)
+        else:
+            values, best = products.abs().amax(-1), None
+        values = torch.where(obstacle_mask.unsqueeze(-2), torch.nan_to_num(values, nan=0.0, posinf=0.0, neginf=0.0),
+                             float("inf"))
         if self.stop_dims:
-            final = centers[:, -1, self.stop_dims].abs() + self.stop_radius
-            stop_excess = (final - self.stop_tolerance).amax(-1)
+            stop_excess = (_take(centers.select(1, -1), self._stop_index).abs() - self._stop_room).amax(-1)
         else:
             stop_excess = centers.new_zeros(centers.shape[0])
-        collision_free = (values > 1 + self.margin).flatten(1).all(-1)
-        return PlanEvaluation(actions, centers, values, stop_excess, collision_free & (stop_excess <= 0))
+        if values.shape[-1] and values.shape[-2]:
+            collision_free = values.amin((-1, -2)) > self._threshold
+        else:
+            collision_free = torch.ones_like(stop_excess, dtype=torch.bool)
+        evaluation = PlanEvaluation(actions, centers, values, stop_excess, collision_free & (stop_excess <= 0))
+        return evaluation, (Gauge(products, best) if detail else None)
+
+    def facet_weights(self) -> Tensor:
+        """The cached facet table's ``weights`` ``[B, T, K, F, d]`` (see :meth:`checker`)."""
+        return self._checker.table.weights
+
+
+class AffineRollout(NamedTuple):
+    """Centres of plan + open-loop braking tail: ``centers = x0 @ state_map + plan @ plan_map + constant``.
+
+    Attributes:
+        state_map: ``[n, T n]``.
+        plan_map: ``[P m, T n]`` (the plan flattened step-major).
+        constant: ``[T n]`` drift plus the braking tail's contribution.
+        tail: ``[T - P, m]`` the braking actions.
+        position_jacobian: ``[T, d, P m]`` d (positions of every centre) / d plan.
+        stop_jacobian: ``[s, P m]`` d (stop dims of the final centre) / d plan.
+    """
+
+    state_map: Tensor
+    plan_map: Tensor
+    constant: Tensor
+    tail: Tensor
+    position_jacobian: Tensor
+    stop_jacobian: Tensor
+
+    def to(self, dtype: torch.dtype, device: torch.device) -> AffineRollout:
+        return AffineRollout(*(t.to(dtype=dtype, device=device) for t in self))
+
+
+class Gauge(NamedTuple):
+    """Internals of a check: ``products`` ``[B, T, K, F]`` are ``w_f . (c_obstacle - c_set)`` and
+    ``best`` ``[B, T, K]`` the facet attaining each value (where ``max_f |products|`` is)."""
+
+    products: Tensor
+    best: Tensor
+
+
+def _index(dims: Sequence[int]) -> slice | list[int]:
+    """A slice when ``dims`` are consecutive (a view, no copy), else the list."""
+    dims = list(dims)
+    if dims and dims[0] >= 0 and dims == list(range(dims[0], dims[0] + len(dims))):
+        return slice(dims[0], dims[0] + len(dims))
+    return dims
+
+
+def _take(x: Tensor, index: slice | list[int]) -> Tensor:
+    if isinstance(index, slice):
+        return x.narrow(-1, index.start, index.stop - index.start)
+    return x[..., index]

@@ -1,0 +1,202 @@
+"""The affine fast paths of plan verification and adjustment agree with the general ones."""
+import numpy as np
+import pytest
+import torch
+from scipy.optimize import nnls
+
+from torchrl_brsl.collision import ZonotopeCollisionChecker
+from torchrl_brsl.reach import DataDrivenReach, DoubleIntegrator
+from torchrl_brsl.safety import FacetQPAdjuster, Failsafe, GradientAdjuster, PlanChecker
+from torchrl_brsl.safety.adjust import _centre_jacobian, _project_polytope
+
+N_PLAN, N_BRK = 5, 8
+D = torch.float64
+
+
+@pytest.fixture(scope="module")
+def reach():
+    system = DoubleIntegrator(drag=0.05, max_speed=3.0, data_speed=1.5)
+    x, xp, u = system.offline_data(500, torch.Generator().manual_seed(0))
+    return DataDrivenReach.fit(x, xp, u, system.noise, translation_invariant_dims=(0, 1), max_generators=24)
+
+
+def open_loop_checker(reach, hold=(0.0, 0.0), stop=0.5, **kwargs):
+    horizon = N_PLAN + N_BRK
+    radius = reach.error_generators_sequence(horizon)[-1, 2:].abs().sum(-1)
+    return PlanChecker(reach, Failsafe(torch.tensor(hold, dtype=D), N_BRK), horizon, stop_dims=(2, 3),
+                       stop_tolerance=(radius + stop).tolist(), action_low=-torch.ones(2, dtype=D),
+                       action_high=torch.ones(2, dtype=D), **kwargs)
+
+
+def scene(n_envs=3, n_obstacles=4, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    x0 = torch.cat((torch.randn(n_envs, 2, generator=g, dtype=D) * 0.1,
+                    torch.randn(n_envs, 2, generator=g, dtype=D) * 0.3), dim=1)
+    plan = torch.rand(n_envs, N_PLAN, 2, generator=g, dtype=D) * 2 - 1
+    centers = torch.randn(n_envs, n_obstacles, 2, generator=g, dtype=D) * 0.8
+    generators = torch.randn(n_envs, n_obstacles, 2, 3, generator=g, dtype=D) * 0.15
+    mask = torch.rand(n_envs, n_obstacles, generator=g) > 0.25
+    return x0, plan, centers, generators, mask
+
+
+def reference_evaluation(checker, x0, plan, centers, generators, mask):
+    """The check written out: explicit action sequence, recursion-free centres, per-pair values."""
+    hold = checker.failsafe.hold_action.to(D).expand(plan.shape[0], checker.horizon - plan.shape[1], 2)
+    actions = torch.cat((plan, hold), dim=1)
+    c = checker.reach.reach_centers(x0, actions)
+    pairs = ZonotopeCollisionChecker(checker.set_generators.unsqueeze(-3).unsqueeze(0), generators.unsqueeze(-4))
+    values = pairs.value(c[..., checker.position_dims].unsqueeze(-2), centers.unsqueeze(-3))
+    values = torch.where(mask.unsqueeze(-2), values, torch.full_like(values, float("inf")))
+    stop = (c[:, -1, checker.stop_dims].abs() + checker.stop_radius - checker.stop_tolerance).amax(-1)
+    safe = (values > 1 + checker.margin).flatten(1).all(-1) & (stop <= 0)
+    return actions, c, values, stop, safe
+
+
+@pytest.mark.parametrize("plan_steps", [1, 3, N_PLAN])
+def test_affine_rollout_matches_the_reach_model(reach, plan_steps):
+    checker = open_loop_checker(reach, hold=(0.3, -0.2))
+    x0, plan, *_ = scene()
+    plan = plan[:, :plan_steps]
+    actions, centers = checker.rollout(x0, plan)
+    assert actions.shape == (3, N_PLAN + N_BRK, 2)
+    torch.testing.assert_close(actions[:, :plan_steps], plan, rtol=0, atol=0)
+    torch.testing.assert_close(actions[:, plan_steps:], torch.tensor([0.3, -0.2], dtype=D).expand_as(
+        actions[:, plan_steps:]), rtol=0, atol=0)
+    torch.testing.assert_close(centers, reach.reach_centers(x0, actions), rtol=0, atol=1e-9)
+    # differentiable like the general path
+    plan = plan.clone().requires_grad_(True)
+    checker.rollout(x0, plan)[1].sum().backward()
+    assert plan.grad is not None and torch.isfinite(plan.grad).all()
+
+
+def test_fast_evaluation_matches_the_explicit_check(reach):
+    checker = open_loop_checker(reach)
+    for seed in range(4):
+        x0, plan, centers, generators, mask = scene(seed=seed)
+        fast = checker.evaluate(x0, plan, centers, generators, mask)
+        actions, c, values, stop, safe = reference_evaluation(checker, x0, plan, centers, generators, mask)
+        torch.testing.assert_close(fast.actions, actions, rtol=0, atol=0)
+        torch.testing.assert_close(fast.centers, c, rtol=0, atol=1e-9)
+        torch.testing.assert_close(fast.values, values, rtol=0, atol=1e-9)
+        torch.testing.assert_close(fast.stop_excess, stop, rtol=0, atol=1e-9)
+        assert torch.equal(fast.safe, safe)
+
+
+def test_non_finite_or_overflowing_offsets_count_as_colliding(reach):
+    checker = open_loop_checker(reach)
+    x0, plan, centers, generators, mask = scene(n_envs=2)
+    mask[:] = True
+    centers = centers.clone()
+    centers[0, 0, 0] = float("nan")
+    centers[1, 0, 0] = 1e308  # finite, but the products overflow
+    centers[1, 0, 1] = -1e308
+    evaluation = checker.evaluate(x0, plan, centers, generators, mask)
+    assert torch.equal(evaluation.values[:, :, 0], torch.zeros(2, N_PLAN + N_BRK, dtype=D))
+    assert not evaluation.safe.any()
+
+
+def test_subset_checker_matches_the_full_batch(reach):
+    checker = open_loop_checker(reach)
+    x0, plan, centers, generators, mask = scene(n_envs=5)
+    full = checker.evaluate(x0, plan, centers, generators, mask)
+    idx = torch.tensor([1, 4])
+    sub = checker._subset(idx)
+    part = sub.evaluate(x0[idx], plan[idx], centers[idx], generators[idx], mask[idx])
+    for a, b in zip(part, full):  # (rounding may differ with the batch size of a product)
+        torch.testing.assert_close(a, b[idx], rtol=0, atol=1e-12)
+    assert sub._checker is not checker._checker and checker._obstacle_generators.shape[0] == 5
+
+
+def test_affine_jacobians_match_finite_differences(reach):
+    checker = open_loop_checker(reach, hold=(0.1, 0.0))
+    x0, plan, *_ = scene()
+    affine = checker.affine(N_PLAN)
+    jacobian = _centre_jacobian(checker, x0, plan)  # [B, T, n, P, m]
+    pos = jacobian[:, :, checker.position_dims].flatten(-2)
+    stop = jacobian[:, -1, checker.stop_dims].flatten(-2)
+    torch.testing.assert_close(pos, affine.position_jacobian.expand_as(pos), rtol=0, atol=1e-7)
+    torch.testing.assert_close(stop, affine.stop_jacobian.expand_as(stop), rtol=0, atol=1e-7)
+
+
+@pytest.mark.parametrize("iterations", [1, 4, 15])
+def test_analytic_gradient_adjuster_matches_autograd(reach, iterations):
+    checker = open_loop_checker(reach, stop=0.3)
+    x0 = torch.tensor([[0.0, 0.0, 0.6, 0.05], [0.0, 0.1, 0.4, -0.1], [0.2, 0.0, 0.0, 0.0]], dtype=D)
+    plan = torch.tensor([[[1.0, 0.0]] * N_PLAN, [[0.8, 0.3]] * N_PLAN, [[-0.2, 0.1]] * N_PLAN], dtype=D)
+    centers = torch.tensor([[[1.3, 0.0], [0.5, 0.9]]] * 3, dtype=D)
+    generators = torch.tensor([[[[0.2, 0.0, 0.05], [0.0, 0.35, 0.05]]] * 2] * 3, dtype=D)
+    mask = torch.tensor([[True, True], [True, False], [True, True]])
+    assert not checker.evaluate(x0, plan, centers, generators, mask).safe.all()
+    fast = GradientAdjuster(max_iterations=iterations, time_budget=None)
+    slow = GradientAdjuster(max_iterations=iterations, time_budget=None)
+    slow._analytic = False
+    a = fast(checker, x0, plan, centers, generators, mask)
+    b = slow(checker, x0, plan, centers, generators, mask)
+    assert torch.equal(a.iterations, b.iterations) and a.iterations.max() > 0
+    torch.testing.assert_close(a.plan, b.plan, rtol=0, atol=1e-9)
+    for x, y in zip(a.evaluation, b.evaluation):
+        torch.testing.assert_close(x, y, rtol=0, atol=1e-9)
+
+
+def test_facet_qp_accepts_only_verified_plans_on_the_fast_path(reach):
+    checker = open_loop_checker(reach, stop=0.3)
+    x0 = torch.tensor([[0.0, 0.0, 0.5, 0.0], [0.0, 0.0, 0.5, 0.0]], dtype=D)
+    centers = torch.tensor([[[1.4, 0.0]], [[1.4, 0.3]]], dtype=D)
+    generators = torch.tensor([[[[0.2, 0.0], [0.0, 0.35]]]] * 2, dtype=D)
+    mask = torch.ones(2, 1, dtype=torch.bool)
+    # reference: decelerate to a stop (safe), proposal: full throttle (unsafe)
+    reference = torch.tensor([[[-1.0, 0.0]] * 5 + [[0.0, 0.0]] * 8] * 2, dtype=D)
+    assert checker.evaluate(x0, reference[:, :N_PLAN], centers, generators, mask).safe.all()
+    plan = torch.tensor([[[1.0, 0.0]] * N_PLAN] * 2, dtype=D)
+    assert not checker.evaluate(x0, plan, centers, generators, mask).safe.any()
+    result = FacetQPAdjuster()(checker, x0, plan, centers, generators, mask, reference=reference)
+    again = checker.evaluate(x0, result.plan, centers, generators, mask)
+    assert torch.equal(again.safe, result.evaluation.safe) and result.evaluation.safe.all()
+    torch.testing.assert_close(again.values, result.evaluation.values, rtol=0, atol=0)
+    assert torch.all(result.plan.abs() <= 1)
+    assert not torch.equal(result.plan, reference[:, :N_PLAN])  # it moved towards the proposal
+
+
+def test_projection_reaches_the_exact_quadratic_program():
+    g = torch.Generator().manual_seed(3)
+    for _ in range(5):
+        n, rows = 6, 9
+        A = torch.randn(1, rows, n, generator=g, dtype=D)
+        b = torch.rand(1, rows, generator=g, dtype=D)
+        target = torch.randn(1, n, generator=g, dtype=D) * 3
+        z = _project_polytope(A, b, target, 3000)
+        # least-distance programming via NNLS (Lawson and Hanson): the exact solution
+        An, bn, tn = A[0].numpy(), b[0].numpy(), target[0].numpy()
+        E = np.vstack(((-An).T, (An @ tn - bn)[None]))
+        f = np.zeros(n + 1)
+        f[-1] = 1
+        u, _ = nnls(E, f, maxiter=10_000)
+        r = E @ u - f
+        exact = torch.from_numpy(tn - r[:n] / r[n])
+        torch.testing.assert_close(z[0], exact, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("adjuster", [FacetQPAdjuster(), GradientAdjuster(max_iterations=20, time_budget=None)])
+def test_layer_batch_with_some_envs_adjusted_matches_single_env_calls(reach, adjuster):
+    from torchrl_brsl.safety import BRSLSafetyLayer
+
+    horizon = N_PLAN + N_BRK
+    radius = reach.error_generators_sequence(horizon)[-1, 2:].abs().sum(-1)
+    layer = BRSLSafetyLayer(reach, Failsafe(torch.zeros(2, dtype=D), N_BRK), N_PLAN, stop_dims=(2, 3),
+                            stop_tolerance=(radius + 0.3).tolist(), action_low=-torch.ones(2),
+                            action_high=torch.ones(2), adjuster=adjuster)
+    x0 = torch.tensor([[0.0, 0.0, 0.5, 0.0], [0.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.5, 0.0]], dtype=D)
+    plan = torch.tensor([[[1.0, 0.0]] * N_PLAN, [[0.0, 0.0]] * N_PLAN, [[0.9, 0.1]] * N_PLAN], dtype=D)
+    safe_plan = torch.tensor([[[-1.0, 0.0]] * 5 + [[0.0, 0.0]] * 8] * 3, dtype=D)
+    centers = torch.tensor([[[1.4, 0.0]], [[1.4, 0.0]], [[1.4, 0.2]]], dtype=D)
+    generators = torch.tensor([[[[0.2, 0.0], [0.0, 0.35]]]] * 3, dtype=D)
+    mask = torch.ones(3, 1, dtype=torch.bool)
+    batched = layer._safe_step(x0, plan, safe_plan, centers, generators, mask, 0.0)
+    assert batched[2]["intervened"].tolist() == [True, False, True]
+    for i in range(3):
+        single = layer._safe_step(x0[i:i + 1], plan[i:i + 1], safe_plan[i:i + 1], centers[i:i + 1],
+                                  generators[i:i + 1], mask[i:i + 1], 0.0)
+        torch.testing.assert_close(single[0][0], batched[0][i], rtol=0, atol=1e-9)
+        torch.testing.assert_close(single[1][0], batched[1][i], rtol=0, atol=1e-9)
+        for name, value in single[2].items():
+            torch.testing.assert_close(value[0], batched[2][name][i], rtol=0, atol=1e-9)
