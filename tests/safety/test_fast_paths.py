@@ -191,12 +191,13 @@ def test_layer_batch_with_some_envs_adjusted_matches_single_env_calls(reach, adj
     centers = torch.tensor([[[1.4, 0.0]], [[1.4, 0.0]], [[1.4, 0.2]]], dtype=D)
     generators = torch.tensor([[[[0.2, 0.0], [0.0, 0.35]]]] * 3, dtype=D)
     mask = torch.ones(3, 1, dtype=torch.bool)
-    batched = layer._safe_step(x0, plan, safe_plan, centers, generators, mask, 0.0)
-    assert batched[2]["intervened"].tolist() == [True, False, True]
+    steps = torch.full((3,), 5, dtype=torch.long)
+    batched = layer._safe_step(x0, plan, safe_plan, steps, centers, generators, mask, 0.0)
+    assert batched[3]["intervened"].tolist() == [True, False, True]
     for i in range(3):
-        single = layer._safe_step(x0[i:i + 1], plan[i:i + 1], safe_plan[i:i + 1], centers[i:i + 1],
-                                  generators[i:i + 1], mask[i:i + 1], 0.0)
-        torch.testing.assert_close(single[0][0], batched[0][i], rtol=0, atol=1e-9)
-        torch.testing.assert_close(single[1][0], batched[1][i], rtol=0, atol=1e-9)
-        for name, value in single[2].items():
-            torch.testing.assert_close(value[0], batched[2][name][i], rtol=0, atol=1e-9)
+        single = layer._safe_step(x0[i:i + 1], plan[i:i + 1], safe_plan[i:i + 1], steps[i:i + 1],
+                                  centers[i:i + 1], generators[i:i + 1], mask[i:i + 1], 0.0)
+        for k in range(3):
+            torch.testing.assert_close(single[k][0], batched[k][i], rtol=0, atol=1e-9)
+        for name, value in single[3].items():
+            torch.testing.assert_close(value[0], batched[3][name][i], rtol=0, atol=1e-9)

@@ -19,7 +19,7 @@ from torchrl_brsl.safety.plan_check import PlanChecker
 
 DIAGNOSTICS = {
     "intervened": torch.bool,  # the proposal was not executed as proposed
-    "failsafe": torch.bool,  # no safe plan found: the previous safe plan continued
+    "failsafe": torch.bool,  # no safe plan found: braking from the state, or the previous safe plan
     "invalid_input": torch.bool,  # NaN/inf in the state, proposal or obstacles
     "min_collision_value": torch.float64,  # min v* of the (adjusted) proposal's sets (inf: no obstacle)
     "adjust_iterations": torch.int64,
@@ -38,7 +38,8 @@ class BRSLSafetyLayer(Transform):
     computes the data-driven reachable sets of that sequence from the measured state. If any
     set meets an obstacle or the last set is not stopped, the plan is adjusted by projected
     gradient on the collision values. An accepted plan becomes the new safe plan; otherwise
-    the previous safe plan continues, shifted by one step (at episode start: stay stopped).
+    the failsafe takes over: braking from the measured state if its sets verify, else the
+    previous safe plan, shifted by one step (at episode start: stay stopped).
     Only the first action of the safe plan reaches the robot.
 
     Safety (paper Theorem 1): every executed action begins a sequence whose reachable sets,
@@ -50,8 +51,9 @@ class BRSLSafetyLayer(Transform):
     Keys written. TorchRL's collector stores the root TensorDict *before* this transform's
     inverse pass, so the executed action and diagnostics are written to the ``"next"``
     TensorDict (and at reset): ``safe_action_key`` ``[..., m]`` (the action sent to the
-    robot), ``safe_plan_key`` ``[..., T, m]`` (per-env state, also in ``full_state_spec``;
-    it is what the next step falls back on), and under ``diagnostics_key`` the entries of
+    robot), ``safe_plan_key`` ``[..., T, m]`` and ``safe_steps_key`` ``[..., 1]`` (per-env state,
+    also in ``full_state_spec``: the fallback plan and how many of its leading actions are
+    verified; once none is left the braking policy acts on the measured state), and under ``diagnostics_key`` the entries of
     :data:`DIAGNOSTICS` ``[..., 1]``. With ``penalty > 0`` the reward is reduced by
     ``penalty`` whenever the proposal was unsafe (the paper's penalty).
 
@@ -91,7 +93,8 @@ class BRSLSafetyLayer(Transform):
                  set_generators: int | None = None, margin: float = 1e-6,
                  state_key: NestedKey = "state", obstacles_key: NestedKey = "obstacles", plan_key: NestedKey = "plan",
                  action_key: NestedKey = "action", safe_action_key: NestedKey = "safe_action",
-                 safe_plan_key: NestedKey = "safe_plan", diagnostics_key: NestedKey = "brsl",
+                 safe_plan_key: NestedKey = "safe_plan", safe_steps_key: NestedKey = "safe_plan_steps",
+                 diagnostics_key: NestedKey = "brsl",
                  reward_key: NestedKey = "reward"):
         super().__init__(in_keys=[], out_keys=[])
         if not isinstance(reach, DataDrivenReach):
@@ -116,6 +119,7 @@ class BRSLSafetyLayer(Transform):
         self.margin = float(margin)
         self.state_key, self.obstacles_key, self.plan_key = state_key, obstacles_key, plan_key
         self.action_key, self.safe_action_key, self.safe_plan_key = action_key, safe_action_key, safe_plan_key
+        self.safe_steps_key = safe_steps_key
         self.diagnostics_key, self.reward_key = diagnostics_key, reward_key
         self._bounds = (action_low, action_high)
         self._checker: PlanChecker | None = None
@@ -152,6 +156,7 @@ class BRSLSafetyLayer(Transform):
         m, device = self.reach.action_dim, observation_spec.device
         observation_spec[self.safe_plan_key] = Unbounded(shape=(*batch, self.horizon, m), dtype=torch.float64,
                                                          device=device)
+        observation_spec[self.safe_steps_key] = self._steps_spec(batch, device)
         observation_spec[self.safe_action_key] = Unbounded(shape=(*batch, m), dtype=self._action_dtype(),
                                                            device=device)
         diag = Composite(shape=batch, device=device)
@@ -169,7 +174,11 @@ class BRSLSafetyLayer(Transform):
         batch, m = input_spec.shape, self.reach.action_dim
         input_spec["full_state_spec"][self.safe_plan_key] = Unbounded(shape=(*batch, self.horizon, m),
                                                                       dtype=torch.float64, device=input_spec.device)
+        input_spec["full_state_spec"][self.safe_steps_key] = self._steps_spec(batch, input_spec.device)
         return input_spec
+
+    def _steps_spec(self, batch: torch.Size, device) -> Bounded:
+        return Bounded(low=0, high=self.horizon, shape=(*batch, 1), dtype=torch.int64, device=device)
 
     def _action_dtype(self) -> torch.dtype:
         parent = self.parent
@@ -184,9 +193,12 @@ class BRSLSafetyLayer(Transform):
         fresh = self._hold_plan(batch, state)
         previous = tensordict.get(self.safe_plan_key, None) if tensordict is not None else None
         reset = tensordict.get("_reset", None) if tensordict is not None else None
+        steps = torch.zeros(*batch, 1, dtype=torch.int64, device=state.device)
         if previous is not None and reset is not None:
             fresh = torch.where(reset.reshape(*batch, 1, 1), fresh, previous.to(fresh))
+            steps = torch.where(reset.reshape(*batch, 1), steps, tensordict.get(self.safe_steps_key, steps))
         tensordict_reset.set(self.safe_plan_key, fresh)
+        tensordict_reset.set(self.safe_steps_key, steps)
         tensordict_reset.set(self.safe_action_key, fresh[..., 0, :].to(self._action_dtype()))
         for name, dtype in DIAGNOSTICS.items():
             value = torch.full((*batch, 1), float("inf")) if name == "min_collision_value" else torch.zeros(*batch, 1)
@@ -199,20 +211,23 @@ class BRSLSafetyLayer(Transform):
         state = tensordict.get(self.state_key)
         action = tensordict.get(self.action_key)
         safe_plan = tensordict.get(self.safe_plan_key, None)
+        safe_steps = tensordict.get(self.safe_steps_key, None)
         if safe_plan is None:
             safe_plan = self._hold_plan(batch, state)
+            safe_steps = torch.zeros(*batch, 1, dtype=torch.int64, device=state.device)
         proposal = tensordict.get(self.plan_key, None)
         if proposal is None:
             proposal = action.unsqueeze(-2)
         obstacles = tensordict.get(self.obstacles_key)
         out = self._safe_step(
             state.reshape(-1, state.shape[-1]), proposal.reshape(-1, *proposal.shape[-2:]),
-            safe_plan.reshape(-1, *safe_plan.shape[-2:]), obstacles.get("center"), obstacles.get("generators"),
-            obstacles.get("mask"), start)
-        executed, new_safe_plan, diagnostics = out
+            safe_plan.reshape(-1, *safe_plan.shape[-2:]), safe_steps.reshape(-1), obstacles.get("center"),
+            obstacles.get("generators"), obstacles.get("mask"), start)
+        executed, new_safe_plan, new_safe_steps, diagnostics = out
         executed = executed.reshape(*batch, -1)
         tensordict.set(self.action_key, executed.to(action.dtype))
         tensordict.set(self.safe_plan_key, new_safe_plan.reshape(*batch, *new_safe_plan.shape[-2:]))
+        tensordict.set(self.safe_steps_key, new_safe_steps.reshape(*batch, 1))
         for name, value in diagnostics.items():
             tensordict.set((self.diagnostics_key, name), value.reshape(*batch, 1).to(DIAGNOSTICS[name]))
         tensordict.set((self.diagnostics_key, "compute_time"),
@@ -222,6 +237,7 @@ class BRSLSafetyLayer(Transform):
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         next_tensordict.set(self.safe_action_key, tensordict.get(self.action_key))
         next_tensordict.set(self.safe_plan_key, tensordict.get(self.safe_plan_key))
+        next_tensordict.set(self.safe_steps_key, tensordict.get(self.safe_steps_key))
         next_tensordict.set(self.diagnostics_key, tensordict.get(self.diagnostics_key).clone())
         if self.penalty:
             unsafe = tensordict.get((self.diagnostics_key, "intervened"))
@@ -233,11 +249,13 @@ class BRSLSafetyLayer(Transform):
         raise RuntimeError(f"{type(self).__name__} acts inside an environment's step: append it to a TransformedEnv.")
 
     # ----------------------------------------------------------------- the safety logic
-    def _safe_step(self, state: Tensor, proposal: Tensor, safe_plan: Tensor, obstacle_centers: Tensor,
-                   obstacle_generators: Tensor, obstacle_mask: Tensor, start: float):
+    def _safe_step(self, state: Tensor, proposal: Tensor, safe_plan: Tensor, safe_steps: Tensor,
+                   obstacle_centers: Tensor, obstacle_generators: Tensor, obstacle_mask: Tensor, start: float):
         """One batched safety decision over ``B`` envs (flattened batch).
 
-        Returns ``(executed [B, m], next safe plan [B, T, m], diagnostics {name: [B]})``.
+        ``safe_steps`` ``[B]`` counts the leading actions of ``safe_plan`` that were verified.
+        Returns ``(executed [B, m], next safe plan [B, T, m], next safe steps [B],
+        diagnostics {name: [B]})``.
         """
         checker = self.checker
         dtype = self.reach.state_matrix.dtype
@@ -292,9 +310,37 @@ class BRSLSafetyLayer(Transform):
                 values[idx] = adjusted.evaluation.values
                 iterations[idx] = adjusted.iterations
 
-        chosen = torch.where(accepted.view(-1, 1, 1), actions, safe_plan.to(dtype))
+        # No plan accepted: brake from the measured state if that verifies, else keep the previous
+        # safe plan. Re-verifying the braking manoeuvre every step is a closed-loop hold: where a
+        # stopped robot does not stay stopped by itself (noise on a double integrator), holding
+        # open loop would drift past the verified horizon.
+        braking = ~accepted if valid is None else valid & ~accepted
+        usable = accepted
+        if bool(braking.any()):
+            idx = braking.nonzero().squeeze(-1)
+            sub = checker if bool(braking.all()) else checker._subset(idx)
+            brake = self.failsafe.actions(x0[idx]).clamp(checker.action_low, checker.action_high)
+            brake = brake.to(checker.action_dtype).to(dtype).unsqueeze(1)
+            with torch.no_grad():
+                braked = sub.evaluate(x0[idx], brake, obstacle_centers[idx], obstacle_generators[idx],
+                                      obstacle_mask[idx])
+            usable = accepted.clone()
+            usable[idx] = braked.safe
+            actions = actions.clone()
+            actions[idx] = torch.where(braked.safe.view(-1, 1, 1), braked.actions, actions[idx])
+        # Beyond the verified part of the safe plan only the failsafe remains: apply the braking
+        # policy to the measured state (a closed-loop hold, paper Assumption 1) rather than an
+        # open-loop action, unless the state itself is unusable.
+        chosen = torch.where(usable.view(-1, 1, 1), actions, safe_plan.to(dtype))
         executed = chosen[:, 0]
+        exhausted = ~usable & (safe_steps <= 0)
+        if bool(exhausted.any()):
+            feedback = self.failsafe.actions(x0).clamp(checker.action_low, checker.action_high)
+            if valid is not None:
+                feedback = torch.where(valid.unsqueeze(-1), feedback, self._hold(feedback).expand_as(feedback))
+            executed = torch.where(exhausted.unsqueeze(-1), feedback.to(checker.action_dtype).to(dtype), executed)
         next_safe_plan = torch.cat((chosen[:, 1:], self._hold(chosen).expand(n_envs, 1, -1)), dim=1)
+        next_steps = torch.where(usable, torch.full_like(safe_steps, self.horizon - 1), (safe_steps - 1).clamp_min(0))
         diagnostics = {
             "intervened": ~proposal_safe,
             "failsafe": ~accepted,
@@ -302,7 +348,7 @@ class BRSLSafetyLayer(Transform):
             "min_collision_value": values.flatten(1).amin(-1),
             "adjust_iterations": iterations,
         }
-        return executed, next_safe_plan, diagnostics
+        return executed, next_safe_plan, next_steps, diagnostics
 
     def _hold(self, like: Tensor) -> Tensor:
         """The failsafe's hold action in ``like``'s dtype and device (cached)."""
