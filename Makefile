@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 export MUJOCO_GL ?= egl
 export OMP_NUM_THREADS ?= 1
 
-.PHONY: demo test bench install clean
+.PHONY: demo demo-reach test bench install clean
 
 install: $(STAMP)
 
@@ -20,6 +20,9 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: $(STAMP)
+	$(PY) -m recipes.demo
+
+demo-reach: $(STAMP)
 	$(PY) -m torchrl_brsl.demo
 
 test: $(STAMP)
