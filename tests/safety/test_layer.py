@@ -170,3 +170,10 @@ def test_constructor_rejects_bad_arguments():
         BRSLSafetyLayer(object(), brake, 8, stop_dims=(4, 5), stop_tolerance=10.0)
     with pytest.raises(ValueError, match="hold_action"):
         BRSLSafetyLayer(reach, Failsafe(torch.zeros(3), 6), 8, stop_dims=(4, 5), stop_tolerance=10.0)
+
+
+def test_adjuster_by_name():
+    assert type(make_layer(TASK, adjuster="facet_qp").adjuster).__name__ == "FacetQPAdjuster"
+    assert make_layer(TASK, adjuster=None).adjuster is None
+    with pytest.raises(ValueError, match="adjuster"):
+        make_layer(TASK, adjuster="newton")

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Sequence
+from typing import Callable, Sequence
 
 import torch
 from tensordict import TensorDictBase
@@ -13,9 +13,11 @@ from torchrl.data import Bounded, Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
 from torchrl_brsl.reach import DataDrivenReach
-from torchrl_brsl.safety.adjust import GradientAdjuster
+from torchrl_brsl.safety.adjust import FacetQPAdjuster, GradientAdjuster
 from torchrl_brsl.safety.failsafe import Failsafe
 from torchrl_brsl.safety.plan_check import PlanChecker
+
+ADJUSTERS = {"gradient": GradientAdjuster, "facet_qp": FacetQPAdjuster}
 
 DIAGNOSTICS = {
     "intervened": torch.bool,  # the proposal was not executed as proposed
@@ -71,7 +73,9 @@ class BRSLSafetyLayer(Transform):
         action_low, action_high: ``[m]`` action bounds (default: the parent's action spec).
         position_dims: state dims of the obstacle space (default: the model's
             translation-invariant dims).
-        adjuster: a callable like :class:`GradientAdjuster`, or ``None`` to never adjust.
+        adjuster: ``"gradient"`` (:class:`GradientAdjuster`, the paper's), ``"facet_qp"``
+            (:class:`FacetQPAdjuster`, faster), a configured adjuster instance, or ``None`` to
+            never adjust.
         penalty: reward penalty for unsafe proposals.
         set_generators: generator width of the projected reachable sets.
         margin: sets count as colliding when ``v* <= 1 + margin``.
@@ -89,7 +93,8 @@ class BRSLSafetyLayer(Transform):
 
     def __init__(self, reach: DataDrivenReach, failsafe: Failsafe, n_plan: int, *, stop_dims: Sequence[int],
                  stop_tolerance: float | Sequence[float], action_low: Tensor | None = None,
-                 action_high: Tensor | None = None, position_dims: Sequence[int] | None = None, adjuster=GradientAdjuster(), penalty: float = 0.0,
+                 action_high: Tensor | None = None, position_dims: Sequence[int] | None = None,
+                 adjuster: str | Callable | None = "gradient", penalty: float = 0.0,
                  set_generators: int | None = None, margin: float = 1e-6,
                  state_key: NestedKey = "state", obstacles_key: NestedKey = "obstacles", plan_key: NestedKey = "plan",
                  action_key: NestedKey = "action", safe_action_key: NestedKey = "safe_action",
@@ -113,6 +118,12 @@ class BRSLSafetyLayer(Transform):
         self.stop_dims = list(stop_dims)
         self.stop_tolerance = stop_tolerance
         self.position_dims = position_dims
+        if isinstance(adjuster, str):
+            if adjuster not in ADJUSTERS:
+                raise ValueError(f"`adjuster` must be one of {sorted(ADJUSTERS)}, an adjuster or None; got {adjuster!r}")
+            adjuster = ADJUSTERS[adjuster]()
+        elif adjuster is not None and not callable(adjuster):
+            raise ValueError(f"`adjuster` must be a name, a callable adjuster or None; got {type(adjuster).__name__}")
         self.adjuster = adjuster
         self.penalty = float(penalty)
         self.set_generators = set_generators
