@@ -6,7 +6,6 @@ import torch
 import envs
 from envs_support import place_robot, zonotope_contains
 
-torch.set_num_threads(1)
 
 
 def _step(env, td, action):

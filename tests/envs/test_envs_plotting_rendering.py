@@ -8,7 +8,6 @@ import torch
 import envs
 from envs import zonotope_polygon
 
-torch.set_num_threads(1)
 
 
 def _rendering_available() -> bool:

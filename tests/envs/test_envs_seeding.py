@@ -5,7 +5,6 @@ import torch
 
 import envs
 
-torch.set_num_threads(1)
 
 
 def _layout_signature(env):

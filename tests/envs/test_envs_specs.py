@@ -6,7 +6,6 @@ from torchrl.envs.utils import check_env_specs
 import envs
 from envs._obstacles import GENERATORS_PER_OBSTACLE
 
-torch.set_num_threads(1)
 
 CAPACITY = {"point_circle": 4, "diffdrive_nav": 12, "quadrotor_nav": 18, "hexarotor_wind": 14, "point_boxes": 10}
 OBSERVATION_DIM = {"point_circle": 5, "diffdrive_nav": 23, "quadrotor_nav": 22, "hexarotor_wind": 26, "point_boxes": 12}

@@ -1,3 +1,4 @@
+"""Suite-wide settings: one torch thread (much faster for the small models and sets here)."""
 import pytest
 import torch
 
