@@ -4,7 +4,11 @@ The multirotor is a free body (collision sphere of radius ``robot_radius``) with
 velocity-tracking inner loop made of MuJoCo actuators that run at every 0.02 s
 physics step: per world axis a velocity servo (time constant 50 ms) whose force is
 saturated at ``mass * 8`` N (so braking from 5 m/s per axis takes ~0.8 s), plus
-gravity compensation (hover thrust, MuJoCo ``gravcomp``). Attitude is not
+gravity compensation (hover thrust, MuJoCo ``gravcomp``). ``max_acceleration=None``
+(an argument of the tasks' ``build_environment`` and of :func:`envs.make`) removes the
+force limit: each servo is then linear, ``v+ = 0.6^5 v + (1 - 0.6^5) u`` per 0.1 s
+control step away from contacts (explicit Euler at 0.02 s), plus the noise (and, for
+``hexarotor_wind``, the wind drag, also linear in the velocity). Attitude is not
 simulated: the body stays level and the lidar is world-aligned. The action is the
 commanded velocity ``[-5, 5]^3`` m/s held for 0.1 s.
 
@@ -113,7 +117,14 @@ class AerialTask(GoalTask):
 
 
 def aerial_model(
-    name: str, empty: bool, n_pillars: int, n_boxes: int, radius: float, mass: float, n_rotors: int
+    name: str,
+    empty: bool,
+    n_pillars: int,
+    n_boxes: int,
+    radius: float,
+    mass: float,
+    n_rotors: int,
+    max_acceleration: float | None = MAX_ACCELERATION,
 ) -> str:
     """MJCF of a multirotor in the arena (see the module docstring).
 
@@ -125,6 +136,8 @@ def aerial_model(
         radius: collision sphere radius (m).
         mass: body mass (kg).
         n_rotors: rotors drawn (visual only).
+        max_acceleration: force limit of the velocity servos per unit mass (m/s^2);
+            ``None``: no limit (linear servos).
     """
     arm = 0.8 * radius
     visuals = []
@@ -151,10 +164,13 @@ def aerial_model(
     obstacles = "" if empty else obstacle_bodies_xml(kinds, max_half)
     xml = model_xml(name, 0.02, robot, obstacles, floor_half_extent=ARENA + 1.0, overview_height=19.0, floor_z=-0.01)
     kv = mass / _SERVO_TIME_CONSTANT
-    force = mass * MAX_ACCELERATION
+    if max_acceleration is None:
+        limit = 'forcelimited="false"'
+    else:
+        force = mass * max_acceleration
+        limit = f'forcelimited="true" forcerange="{-force:.6g} {force:.6g}"'
     actuators = "\n".join(
-        f'    <velocity name="v{axis}" joint="root" gear="{gear}" kv="{kv:.6g}" forcelimited="true"'
-        f' forcerange="{-force:.6g} {force:.6g}"/>'
+        f'    <velocity name="v{axis}" joint="root" gear="{gear}" kv="{kv:.6g}" {limit}/>'
         for axis, gear in (("x", "1 0 0 0 0 0"), ("y", "0 1 0 0 0 0"), ("z", "0 0 1 0 0 0"))
     )
     return with_actuators(xml, actuators)

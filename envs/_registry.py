@@ -47,9 +47,9 @@ def make(name: str, seed: int | None = 0, empty: bool = False, layout: int | Non
         **kwargs: arguments of the task module's ``build_environment``
             (``episode_steps``, the time limit in control steps, and
             ``terminate_on_collision`` for every task; ``max_acceleration`` for
-            ``point_boxes``) go to the task; anything else (``from_pixels``,
-            ``pixels_only``, ``camera_id``, ``render_kwargs``, ``device``) to
-            :class:`~torchrl.envs.DMControlWrapper`.
+            ``point_boxes``, ``quadrotor_nav`` and ``hexarotor_wind``) go to the
+            task; anything else (``from_pixels``, ``pixels_only``, ``camera_id``,
+            ``render_kwargs``, ``device``) to :class:`~torchrl.envs.DMControlWrapper`.
 
     Returns:
         A :class:`envs.SafetyTaskEnv` (an ``EnvBase``; append transforms with

@@ -29,7 +29,7 @@ import numpy as np
 from dm_control import mujoco as dm_mujoco
 from dm_control.rl import control
 
-from envs._aerial import ARENA, N_BOUNDARY, AerialTask, aerial_model, boundary, draw_obstacle
+from envs._aerial import ARENA, MAX_ACCELERATION, N_BOUNDARY, AerialTask, aerial_model, boundary, draw_obstacle
 from envs._obstacles import KeepOut, Layout, Obstacle, place_obstacles
 from envs._safety_info import SafetyInfo, zero_command
 
@@ -130,6 +130,7 @@ def build_environment(
     seed=None,
     episode_steps: int = 400,
     terminate_on_collision: bool = True,
+    max_acceleration: float | None = MAX_ACCELERATION,
 ) -> control.Environment:
     """The dm_control environment of ``hexarotor_wind``.
 
@@ -139,6 +140,9 @@ def build_environment(
         seed: seed of the task's random state.
         episode_steps: time limit in steps of 0.1 s.
         terminate_on_collision: end the episode on a collision.
+        max_acceleration: force limit of the velocity servos per unit mass (m/s^2).
+            ``None`` removes it: the servos are then linear (see :mod:`envs._aerial`),
+            and the zero command still stops the robot within ``n_brk`` steps.
 
     Returns:
         A ``dm_control.rl.control.Environment``.
@@ -148,7 +152,10 @@ def build_environment(
         >>> env.reset().observation["obstacles_center"].shape
         (14, 3)
     """
-    xml = aerial_model("hexarotor_wind", empty, _N_PILLARS, _N_BOXES, HexarotorWind.robot_radius, mass=2.0, n_rotors=6)
+    xml = aerial_model(
+        "hexarotor_wind", empty, _N_PILLARS, _N_BOXES, HexarotorWind.robot_radius, mass=2.0, n_rotors=6,
+        max_acceleration=max_acceleration,
+    )
     task = HexarotorWind(
         empty=empty, layout=layout, terminate_on_collision=terminate_on_collision, random=seed
     )

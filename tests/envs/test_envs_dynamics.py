@@ -155,11 +155,14 @@ def _random_moving_states(name, rng, n):
     return np.concatenate([corners, rng.uniform(-5, 5, (n - 2, 3))])
 
 
-@pytest.mark.parametrize("name", [*envs.TASKS, "point_boxes_linear"])
+_LINEAR = ("point_boxes", "quadrotor_nav", "hexarotor_wind")
+
+
+@pytest.mark.parametrize("name", [*envs.TASKS, *(f"{task}_linear" for task in _LINEAR)])
 def test_braking_policy_stops_within_n_brk(name):
     kwargs = {}
-    if name == "point_boxes_linear":
-        name, kwargs = "point_boxes", {"max_acceleration": None}
+    if name.endswith("_linear"):
+        name, kwargs = name.removesuffix("_linear"), {"max_acceleration": None}
     info = envs.safety_info(name)
     env = envs.make(name, seed=0, empty=True, episode_steps=1000, **kwargs)
     rng = np.random.RandomState(1)
@@ -326,3 +329,24 @@ def test_point_boxes_without_acceleration_limit_is_linear():
     np.testing.assert_allclose(rows @ coefficients, targets, atol=1e-12)
     a = 0.6**5
     np.testing.assert_allclose(coefficients[:, 1], [a, 1 - a], atol=1e-12)
+
+
+def test_quadrotor_without_acceleration_limit_is_linear():
+    """Noiseless steps of the uncapped multirotor: per axis ``v+ = a v + (1 - a) u``, ``x+ = x + c v + d u``."""
+    env = envs.make("quadrotor_nav", seed=0, empty=True, max_acceleration=None, episode_steps=1000)
+    env.reset()
+    env.task.noise_scale = 0.0
+    rng = np.random.RandomState(0)
+    rows, targets = [], []
+    for _ in range(30):
+        state = env.task.state(env.physics)
+        action = rng.uniform(-5, 5, 3)
+        after = _manual_step(env, action)
+        for axis in range(3):
+            rows.append([state[3 + axis], action[axis]])
+            targets.append([after[axis] - state[axis], after[3 + axis]])
+    rows, targets = np.array(rows), np.array(targets)
+    coefficients, *_ = np.linalg.lstsq(rows, targets, rcond=None)
+    np.testing.assert_allclose(rows @ coefficients, targets, atol=1e-9)
+    a = 0.6**5
+    np.testing.assert_allclose(coefficients[:, 1], [a, 1 - a], atol=1e-9)

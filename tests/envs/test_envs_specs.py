@@ -17,6 +17,12 @@ def test_check_env_specs(name, empty):
     check_env_specs(envs.make(name, seed=0, empty=empty))
 
 
+@pytest.mark.parametrize("empty", [False, True])
+@pytest.mark.parametrize("name", ["point_boxes", "quadrotor_nav", "hexarotor_wind"])
+def test_check_env_specs_without_acceleration_limit(name, empty):
+    check_env_specs(envs.make(name, seed=0, empty=empty, max_acceleration=None))
+
+
 @pytest.mark.parametrize("name", envs.TASKS)
 def test_keys_shapes_and_dtypes(name):
     info = envs.safety_info(name)
@@ -105,6 +111,9 @@ def test_make_forwards_task_arguments():
     assert not linear.physics.model.actuator_forcelimited.any()
     assert linear.rollout(10).shape == (5,)
     assert envs.make("point_boxes", seed=0).physics.model.actuator_forcelimited.all()
+    for name in ("quadrotor_nav", "hexarotor_wind"):
+        assert not envs.make(name, seed=0, max_acceleration=None).physics.model.actuator_forcelimited.any()
+        assert envs.make(name, seed=0).physics.model.actuator_forcelimited.all()
 
 
 def test_unknown_task_raises():
