@@ -32,6 +32,8 @@ from torchrl_brsl.reach import DataDrivenReach
 def train(cfg: DictConfig, run_dir: str | Path) -> dict:
     """Trains (or resumes) one run; returns the last logged metrics and totals."""
     run_dir = Path(run_dir)
+    if cfg.method.layer and cfg.method.learn_from not in ("executed", "proposed"):
+        raise ValueError(f"method.learn_from must be 'executed' or 'proposed', got {cfg.method.learn_from!r}")
     run_dir.mkdir(parents=True, exist_ok=True)
     OmegaConf.save(cfg, run_dir / "config.yaml", resolve=True)
     common.threads(cfg.threads)
@@ -120,7 +122,9 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:
     for data in collector:
         data = data.reshape(-1)
         n = data.numel()
-        if cfg.method.layer:  # learn from what the robot executed (reward already penalised by the layer)
+        if cfg.method.layer and cfg.method.learn_from == "executed":
+            # learn from what the robot executed (the reward is already penalised by the layer);
+            # "proposed" keeps the proposal: the layer is then part of the agent's environment
             data["action"] = data["next", "safe_action"]
         buffer.extend(data.select(*common.BUFFER_KEYS))
         exploration.step(n)

@@ -116,6 +116,14 @@ def test_unknown_planner_is_rejected(tmp_path):
         train(cfg, run_dir(tmp_path, "point_boxes", "brsl"))
 
 
+def test_learn_from_proposals_runs_and_bad_values_are_rejected(tmp_path):
+    cfg = config(tmp_path, "point_boxes", "brsl", 200, "method.learn_from=proposed")
+    assert train(cfg, run_dir(tmp_path, "point_boxes", "brsl"))["totals"]["frames"] == 200
+    with pytest.raises(ValueError, match="learn_from"):
+        train(config(tmp_path, "point_boxes", "brsl", 200, "method.learn_from=both"),
+              run_dir(tmp_path, "point_boxes", "brsl2"))
+
+
 def test_hydra_entry_point(tmp_path):
     cmd = [sys.executable, "-m", "recipes.train", "task=point_boxes", "method=td3", f"root={tmp_path}",
            "total_frames=100", "init_random_frames=100", *TINY[:1], *TINY[2:5]]
