@@ -46,9 +46,10 @@ def test_zonotope_polygon_projects_3d_and_drops_zero_generators():
 @pytest.mark.parametrize("name", envs.TASKS)
 def test_plot_topdown_writes_a_figure(name, tmp_path):
     env = envs.make(name, seed=0)
-    td = env.rollout(10)
+    td = env.rollout(10)  # may end early on a collision (random actions)
+    steps = len(td)
     info = envs.safety_info(name)
-    sets = (td["next", "state"][:, : info.obstacle_dim], 0.05 * torch.randn(10, info.obstacle_dim, 4))
+    sets = (td["next", "state"][:, : info.obstacle_dim], 0.05 * torch.randn(steps, info.obstacle_dim, 4))
     ax = envs.plot_topdown(td, path=tmp_path / "rollout.png", sets=sets, layout=env.layout)
     as_mapping = {"center": sets[0], "generators": sets[1]}
     ax_layout = envs.plot_topdown(env.layout, path=tmp_path / "layout.png", sets=as_mapping)
@@ -57,9 +58,9 @@ def test_plot_topdown_writes_a_figure(name, tmp_path):
         assert path.stat().st_size > 5000
     # obstacles (minus floor/ceiling), goals and sets are drawn as patches; the path as a line
     n_obstacles = int(td[0]["obstacles", "mask"].sum()) - (2 if info.obstacle_dim == 3 else 0)
-    assert len(ax.patches) >= 2 * n_obstacles + 10 + len(env.layout.goals)
-    assert len(ax.lines[-1].get_xdata()) == 11  # 10 states + the final next state
-    assert len(ax_layout.patches) >= 2 * n_obstacles + 10
+    assert len(ax.patches) >= 2 * n_obstacles + steps + len(env.layout.goals)
+    assert len(ax.lines[-1].get_xdata()) == steps + 1  # the states + the final next state
+    assert len(ax_layout.patches) >= 2 * n_obstacles + steps
 
 
 @needs_gl
