@@ -14,6 +14,8 @@ from typing import ClassVar
 import mujoco
 import numpy as np
 import torch
+from dm_control import mujoco as dm_mujoco
+from dm_control.rl import control
 from dm_control.suite import base
 from dm_env import specs
 
@@ -283,3 +285,13 @@ class GoalTask(SafetyTask):
             + self.GOAL_BONUS * self._reached_now
             - self.COLLISION_PENALTY * self._collision
         )
+
+
+def task_environment(xml: str, task: SafetyTask, episode_steps: int, n_sub_steps: int) -> control.Environment:
+    """The dm_control environment running ``task`` on the MJCF model ``xml``.
+
+    Episodes last ``episode_steps`` control steps of ``task.dt`` each, simulated in
+    ``n_sub_steps`` physics steps.
+    """
+    return control.Environment(dm_mujoco.Physics.from_xml_string(xml), task,
+                               time_limit=(episode_steps - 0.5) * task.dt, n_sub_steps=n_sub_steps)

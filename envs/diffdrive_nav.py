@@ -23,14 +23,13 @@ from __future__ import annotations
 import functools
 
 import numpy as np
-from dm_control import mujoco as dm_mujoco
 from dm_control.rl import control
 
 from envs._lidar import Lidar, planar_fan
 from envs._mjcf import model_xml, with_actuators
 from envs._obstacles import KeepOut, Layout, Obstacle, boundary_walls, obstacle_bodies_xml, place_obstacles
 from envs._safety_info import SafetyInfo, zero_command
-from envs._task import GoalTask
+from envs._task import GoalTask, task_environment
 
 ARENA = 2.5
 MAX_SPEED = 0.25
@@ -206,11 +205,10 @@ def build_environment(
         >>> int(env.reset().observation["obstacles_mask"].sum())
         12
     """
-    physics = dm_mujoco.Physics.from_xml_string(_model(empty))
     task = DiffDriveNav(
         empty=empty, layout=layout, terminate_on_collision=terminate_on_collision, random=seed
     )
-    return control.Environment(physics, task, time_limit=(episode_steps - 0.5) * task.dt, n_sub_steps=5)
+    return task_environment(_model(empty), task, episode_steps, n_sub_steps=5)
 
 
 def safety_info() -> SafetyInfo:

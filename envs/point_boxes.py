@@ -33,14 +33,13 @@ from __future__ import annotations
 import functools
 
 import numpy as np
-from dm_control import mujoco as dm_mujoco
 from dm_control.rl import control
 
 from envs._lidar import Lidar, rings
 from envs._mjcf import model_xml, with_actuators
 from envs._obstacles import Layout, Obstacle, boundary_walls, obstacle_bodies_xml
 from envs._safety_info import SafetyInfo, zero_command
-from envs._task import SafetyTask
+from envs._task import SafetyTask, task_environment
 
 ARENA = 1.5
 MAX_SPEED = 1.0
@@ -219,9 +218,8 @@ def build_environment(
         >>> bool(env.reset().observation["obstacles_mask"].any())
         False
     """
-    physics = dm_mujoco.Physics.from_xml_string(_model(empty, max_acceleration))
     task = PointBoxes(empty=empty, layout=layout, terminate_on_collision=terminate_on_collision, random=seed)
-    return control.Environment(physics, task, time_limit=(episode_steps - 0.5) * task.dt, n_sub_steps=5)
+    return task_environment(_model(empty, max_acceleration), task, episode_steps, n_sub_steps=5)
 
 
 def safety_info() -> SafetyInfo:

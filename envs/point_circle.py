@@ -21,13 +21,12 @@ After Achiam et al. (2017) and Wagener et al. (2021), as in Sec. IV of the BRSL 
 from __future__ import annotations
 
 import numpy as np
-from dm_control import mujoco as dm_mujoco
 from dm_control.rl import control
 
 from envs._mjcf import model_xml, with_actuators
 from envs._obstacles import Layout, boundary_walls, obstacle_bodies_xml
 from envs._safety_info import SafetyInfo
-from envs._task import SafetyTask
+from envs._task import SafetyTask, task_environment
 
 PATH_RADIUS = 2.0
 X_MAX = 1.2
@@ -159,11 +158,10 @@ def build_environment(
         >>> env.step(np.array([1.0, 0.0])).step_type.name
         'FIRST'
     """
-    physics = dm_mujoco.Physics.from_xml_string(_model(empty))
     task = PointCircle(
         empty=empty, layout=layout, terminate_on_collision=terminate_on_collision, random=seed
     )
-    return control.Environment(physics, task, time_limit=(episode_steps - 0.5) * task.dt, n_sub_steps=2)
+    return task_environment(_model(empty), task, episode_steps, n_sub_steps=2)
 
 
 def braking_policy(state, dt: float = PointCircle.dt):

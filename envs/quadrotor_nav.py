@@ -19,12 +19,12 @@ from __future__ import annotations
 import functools
 
 import numpy as np
-from dm_control import mujoco as dm_mujoco
 from dm_control.rl import control
 
 from envs._aerial import ARENA, MAX_ACCELERATION, N_BOUNDARY, AerialTask, aerial_model, boundary, draw_obstacle
 from envs._obstacles import KeepOut, Layout, place_obstacles
 from envs._safety_info import SafetyInfo, zero_command
+from envs._task import task_environment
 
 GOAL_RADIUS = 0.75
 _N_PILLARS = 6
@@ -112,9 +112,7 @@ def build_environment(
     task = QuadrotorNav(
         empty=empty, layout=layout, terminate_on_collision=terminate_on_collision, random=seed
     )
-    return control.Environment(
-        dm_mujoco.Physics.from_xml_string(xml), task, time_limit=(episode_steps - 0.5) * task.dt, n_sub_steps=5
-    )
+    return task_environment(xml, task, episode_steps, n_sub_steps=5)
 
 
 def safety_info() -> SafetyInfo:

@@ -310,43 +310,29 @@ def test_point_boxes_servo_tracks_the_command_within_the_acceleration_limit():
     assert nxt["reward"] == pytest.approx(float(np.linalg.norm(velocities[-1])), rel=1e-5)
 
 
-def test_point_boxes_without_acceleration_limit_is_linear():
-    """Noiseless steps of the unlimited variant: ``v+ = a v + (1 - a) u``, ``x+ = x + c v + d u``."""
-    env = envs.make("point_boxes", seed=0, empty=True, max_acceleration=None)
+@pytest.mark.parametrize(
+    "name, axes, command, options, atol",
+    [
+        ("point_boxes", 2, 1.0, {}, 1e-12),
+        ("quadrotor_nav", 3, 5.0, {"episode_steps": 1000}, 1e-9),
+    ],
+)
+def test_servos_without_acceleration_limit_are_linear(name, axes, command, options, atol):
+    """Noiseless steps of the uncapped variants: per axis ``v+ = a v + (1 - a) u``, ``x+ = x + c v + d u``."""
+    env = envs.make(name, seed=0, empty=True, max_acceleration=None, **options)
     env.reset()
     env.task.noise_scale = 0.0
     rng = np.random.RandomState(0)
     rows, targets = [], []
     for _ in range(30):
         state = env.task.state(env.physics)
-        action = rng.uniform(-1, 1, 2)
+        action = rng.uniform(-command, command, axes)
         after = _manual_step(env, action)
-        for axis in range(2):
-            rows.append([state[2 + axis], action[axis]])
-            targets.append([after[axis] - state[axis], after[2 + axis]])
+        for axis in range(axes):
+            rows.append([state[axes + axis], action[axis]])
+            targets.append([after[axis] - state[axis], after[axes + axis]])
     rows, targets = np.array(rows), np.array(targets)
     coefficients, *_ = np.linalg.lstsq(rows, targets, rcond=None)
-    np.testing.assert_allclose(rows @ coefficients, targets, atol=1e-12)
+    np.testing.assert_allclose(rows @ coefficients, targets, atol=atol)
     a = 0.6**5
-    np.testing.assert_allclose(coefficients[:, 1], [a, 1 - a], atol=1e-12)
-
-
-def test_quadrotor_without_acceleration_limit_is_linear():
-    """Noiseless steps of the uncapped multirotor: per axis ``v+ = a v + (1 - a) u``, ``x+ = x + c v + d u``."""
-    env = envs.make("quadrotor_nav", seed=0, empty=True, max_acceleration=None, episode_steps=1000)
-    env.reset()
-    env.task.noise_scale = 0.0
-    rng = np.random.RandomState(0)
-    rows, targets = [], []
-    for _ in range(30):
-        state = env.task.state(env.physics)
-        action = rng.uniform(-5, 5, 3)
-        after = _manual_step(env, action)
-        for axis in range(3):
-            rows.append([state[3 + axis], action[axis]])
-            targets.append([after[axis] - state[axis], after[3 + axis]])
-    rows, targets = np.array(rows), np.array(targets)
-    coefficients, *_ = np.linalg.lstsq(rows, targets, rcond=None)
-    np.testing.assert_allclose(rows @ coefficients, targets, atol=1e-9)
-    a = 0.6**5
-    np.testing.assert_allclose(coefficients[:, 1], [a, 1 - a], atol=1e-9)
+    np.testing.assert_allclose(coefficients[:, 1], [a, 1 - a], atol=atol)
