@@ -6,7 +6,11 @@
   MuJoCo velocity servos at every 0.02 s physics step: body-frame forward speed
   (time constant 50 ms, acceleration limit 0.5 m/s^2), yaw rate (50 ms, 2 rad/s^2)
   and a stiff zero-lateral-speed servo standing in for wheel grip. Braking from
-  full speed takes 5-6 control steps.
+  full speed takes 5-6 control steps. ``max_acceleration=None`` and
+  ``max_turn_acceleration=None`` (arguments of :func:`build_environment` and
+  :func:`envs.make`) remove the two acceleration limits: the speed and yaw-rate servos
+  are then linear and braking takes 3 steps, so only the planar kinematics
+  (``v cos θ``, ``v sin θ``) stay nonlinear for a fitted linear model.
 * State ``(x, y, cos θ, sin θ, v, ω)`` with ``v`` the body-frame forward speed;
   process noise ``U[-0.005, 0.005]`` m/s on ``v`` and ``U[-0.01, 0.01]`` rad/s on ``ω``.
 * Observation (23): 18 lidar ranges over the front 180° divided by the 3.5 m range,
@@ -37,6 +41,10 @@ MAX_TURN_RATE = 0.5
 LIDAR_RANGE = 3.5
 N_LIDAR = 18
 GOAL_RADIUS = 0.2
+MAX_ACCELERATION = 0.5
+MAX_TURN_ACCELERATION = 2.0
+_MASS = 1.0
+_YAW_INERTIA = 0.01
 _HEIGHT = 0.4
 _ROBOT_Z = 0.15
 _WALL_THICKNESS = 0.2
@@ -150,13 +158,17 @@ class DiffDriveNav(GoalTask):
         return bool(np.all(np.abs(physics.data.qpos[:2]) <= ARENA))
 
 
-def _model(empty: bool) -> str:
+def _force_limit(limit: float | None) -> str:
+    return 'forcelimited="false"' if limit is None else f'forcelimited="true" forcerange="{-limit:.6g} {limit:.6g}"'
+
+
+def _model(empty: bool, max_acceleration: float | None, max_turn_acceleration: float | None) -> str:
     robot = f"""
     <body name="robot" pos="0 0 {_ROBOT_Z}">
       <joint name="x" type="slide" axis="1 0 0"/>
       <joint name="y" type="slide" axis="0 1 0"/>
       <joint name="yaw" type="hinge" axis="0 0 1"/>
-      <inertial pos="0 0 0" mass="1" diaginertia="0.01 0.01 0.01"/>
+      <inertial pos="0 0 0" mass="{_MASS}" diaginertia="{_YAW_INERTIA} {_YAW_INERTIA} {_YAW_INERTIA}"/>
       <geom name="robot" class="robot" type="sphere" size="{DiffDriveNav.robot_radius}"/>
       <geom class="visual" type="cylinder" size="0.09 0.07" pos="-0.02 0 -0.02" rgba=".15 .15 .17 1"/>
       <geom class="visual" type="cylinder" size="0.033 0.009" pos="0 0.08 -0.117" euler="1.5708 0 0" rgba="0 0 0 1"/>
@@ -172,11 +184,13 @@ def _model(empty: bool) -> str:
     max_half += [[_BOX_HALF_SIDE[1], _BOX_HALF_SIDE[1], _HEIGHT / 2]] * _N_BOXES
     obstacles = "" if empty else obstacle_bodies_xml(DiffDriveNav.obstacle_kinds, max_half)
     xml = model_xml("diffdrive_nav", 0.02, robot, obstacles, floor_half_extent=3.0, overview_height=5.0)
+    forward = _force_limit(None if max_acceleration is None else _MASS * max_acceleration)
+    turn = _force_limit(None if max_turn_acceleration is None else _YAW_INERTIA * max_turn_acceleration)
     return with_actuators(
         xml,
-        """    <velocity name="forward" site="base" gear="1 0 0 0 0 0" kv="20" forcerange="-0.5 0.5"/>
-    <velocity name="lateral" site="base" gear="0 1 0 0 0 0" kv="40" forcerange="-5 5"/>
-    <velocity name="turn" joint="yaw" kv="0.2" forcerange="-0.02 0.02"/>""",
+        f"""    <velocity name="forward" site="base" gear="1 0 0 0 0 0" kv="20" {forward}/>
+    <velocity name="lateral" site="base" gear="0 1 0 0 0 0" kv="40" {_force_limit(5.0)}/>
+    <velocity name="turn" joint="yaw" kv="0.2" {turn}/>""",
     )
 
 
@@ -187,6 +201,8 @@ def build_environment(
     seed=None,
     episode_steps: int = 300,
     terminate_on_collision: bool = True,
+    max_acceleration: float | None = MAX_ACCELERATION,
+    max_turn_acceleration: float | None = MAX_TURN_ACCELERATION,
 ) -> control.Environment:
     """The dm_control environment of ``diffdrive_nav``.
 
@@ -196,6 +212,10 @@ def build_environment(
         seed: seed of the task's random state.
         episode_steps: time limit in steps of 0.1 s.
         terminate_on_collision: end the episode on a collision.
+        max_acceleration: forward acceleration limit of the speed servo (m/s^2); ``None``
+            removes it.
+        max_turn_acceleration: yaw acceleration limit of the turn servo (rad/s^2); ``None``
+            removes it.
 
     Returns:
         A ``dm_control.rl.control.Environment``.
@@ -208,7 +228,7 @@ def build_environment(
     task = DiffDriveNav(
         empty=empty, layout=layout, terminate_on_collision=terminate_on_collision, random=seed
     )
-    return task_environment(_model(empty), task, episode_steps, n_sub_steps=5)
+    return task_environment(_model(empty, max_acceleration, max_turn_acceleration), task, episode_steps, n_sub_steps=5)
 
 
 def safety_info() -> SafetyInfo:

@@ -155,14 +155,17 @@ def _random_moving_states(name, rng, n):
     return np.concatenate([corners, rng.uniform(-5, 5, (n - 2, 3))])
 
 
-_LINEAR = ("point_boxes", "quadrotor_nav", "hexarotor_wind")
+_UNCAPPED = {"max_acceleration": None}
+_LINEAR = {"point_boxes": _UNCAPPED, "quadrotor_nav": _UNCAPPED, "hexarotor_wind": _UNCAPPED,
+           "diffdrive_nav": {**_UNCAPPED, "max_turn_acceleration": None}}
 
 
 @pytest.mark.parametrize("name", [*envs.TASKS, *(f"{task}_linear" for task in _LINEAR)])
 def test_braking_policy_stops_within_n_brk(name):
     kwargs = {}
     if name.endswith("_linear"):
-        name, kwargs = name.removesuffix("_linear"), {"max_acceleration": None}
+        name = name.removesuffix("_linear")
+        kwargs = _LINEAR[name]
     info = envs.safety_info(name)
     env = envs.make(name, seed=0, empty=True, episode_steps=1000, **kwargs)
     rng = np.random.RandomState(1)
