@@ -200,3 +200,64 @@ def test_reach_rejects_bad_actions():
         reach.reach(Zonotope.from_point(torch.zeros(4, dtype=torch.float64)), torch.zeros(5, 3))
     with pytest.raises(ValueError, match="actions"):
         reach.reach(Zonotope.from_point(torch.zeros(4, dtype=torch.float64)), torch.full((5, 2), float("nan")))
+
+
+
+def _low_speed_domain(speed):
+    """Double integrator ``(x, y, vx, vy, ax, ay)``: ``|vx|, |vy| <= speed``."""
+    low = torch.full((6,), -torch.inf, dtype=torch.float64)
+    high = torch.full((6,), torch.inf, dtype=torch.float64)
+    low[2:4], high[2:4] = -speed, speed
+    return low, high
+
+
+def test_domain_model_drops_data_outside_and_has_tighter_sets():
+    system = DoubleIntegrator(drag=1.0)  # quadratic drag: nearly linear only at low speed
+    full = fit(system, num=2000, max_generators=12)
+    slow = fit(system, num=4000, max_generators=12, domain=_low_speed_domain(0.5))
+    assert not full.bounded_domain and slow.bounded_domain
+    assert 0 < slow.x_minus.shape[0] < 4000 and bool((slow.x_minus[:, 2:].abs() <= 0.5).all())
+    position = [e.abs().sum(-1)[:, :2].amax() for e in (full.error_generators_sequence(5),
+                                                          slow.error_generators_sequence(5))]
+    assert position[1] < 0.6 * position[0]
+
+
+def test_domain_model_is_sound_inside_its_domain_and_in_domain_says_where():
+    system = DoubleIntegrator(drag=1.0)
+    slow = fit(system, num=4000, max_generators=12, domain=_low_speed_domain(0.5))
+    gen = torch.Generator().manual_seed(3)
+    horizon, per_plan, checked = 4, 2000, 0
+    for _ in range(12):
+        x0 = torch.zeros(4, dtype=torch.float64)
+        x0[2:] = 0.2 * (torch.rand(2, generator=gen, dtype=torch.float64) * 2 - 1)
+        plan = system.sample_actions(horizon, generator=gen)
+        sets = slow.reach(Zonotope.from_point(x0), plan)
+        starts = Zonotope(torch.cat((x0[None], sets.center[:-1])),
+                          torch.cat((torch.zeros_like(sets.generators[:1]), sets.generators[:-1])))
+        if not bool(slow.in_domain(starts, plan)):
+            continue
+        x = x0.expand(per_plan, -1)
+        for j in range(horizon):
+            x = system.step(x, plan[j], gen)
+            assert containment_violations(sets[j], x) == 0, f"step {j + 1}: true states outside R_{j + 1}"
+        checked += 1
+    assert checked >= 3
+    # accelerating past the domain's speed bound leaves it
+    fast = torch.ones(horizon, 2, dtype=torch.float64)
+    sets = slow.reach(Zonotope.from_point(torch.tensor([0.0, 0.0, 0.3, 0.0], dtype=torch.float64)), fast)
+    assert not bool(slow.in_domain(sets, fast))
+
+
+def test_domain_survives_save_and_load_and_bad_domains_are_rejected(tmp_path):
+    system = DoubleIntegrator()
+    slow = fit(system, num=1000, domain=_low_speed_domain(0.8))
+    slow.save(tmp_path / "slow.pt")
+    loaded = DataDrivenReach.load(tmp_path / "slow.pt")
+    assert torch.equal(loaded.domain_high, slow.domain_high) and loaded.bounded_domain
+    x, xp, u = system.offline_data(200, torch.Generator().manual_seed(0))
+    with pytest.raises(ValueError, match="domain"):
+        DataDrivenReach.fit(x, xp, u, system.noise, domain=(torch.zeros(6), torch.zeros(6)))
+    with pytest.raises(ValueError, match="domain"):
+        DataDrivenReach.fit(x, xp, u, system.noise, domain=(torch.zeros(4), torch.ones(4)))
+    with pytest.raises(ValueError, match="in `domain`"):
+        DataDrivenReach.fit(x, xp, u, system.noise, domain=_low_speed_domain(1e-6))

@@ -46,6 +46,12 @@ class DataDrivenReach(nn.Module):
     assumptions: noise in ``W`` (offline and online), ``L`` and ``δ`` representative of the
     system, and queries inside the region the data covers (see :meth:`data_distance`).
 
+    **Domain.** ``fit(..., domain=(low, high))`` keeps only the transitions whose
+    ``(x, u)`` lie in that box and claims nothing outside it. A model of a small domain
+    (e.g. low speeds, where a robot's kinematics are nearly linear) has much tighter sets;
+    its sets are usable only while every state they start a step from, and every action,
+    stay in the domain (:meth:`in_domain`). The default domain is everything.
+
     Data come as rows: ``x_minus[i] -> x_plus[i]`` under ``u_minus[i]`` (samples along the
     first dimension; several trajectories are simply concatenated, or passed as lists).
 
@@ -77,7 +83,7 @@ class DataDrivenReach(nn.Module):
     @classmethod
     def fit(cls, x_minus, x_plus, u_minus, noise: Zonotope, translation_invariant_dims: Sequence[int] = (),
             max_generators: int | None = None, n_neighbors: int = 10, lipschitz_margin: float = 1.0,
-            dtype: torch.dtype = torch.float64) -> DataDrivenReach:
+            domain: tuple | None = None, dtype: torch.dtype = torch.float64) -> DataDrivenReach:
         """Fit the model and its error zonotope from offline transitions.
 
         Args:
@@ -90,6 +96,9 @@ class DataDrivenReach(nn.Module):
             max_generators: see the class docstring.
             n_neighbors: neighbours per point for the Lipschitz estimate.
             lipschitz_margin: factor (>= 1) applied to the estimated constants.
+            domain: ``(low, high)``, each ``[n + m]`` bounds on ``(x, u)`` (``±inf`` for none):
+                the transitions outside are dropped and the model claims nothing outside
+                (see the class docstring). ``None``: no restriction.
             dtype: computation dtype (float64 by default).
         """
         x_minus = _rows("x_minus", x_minus, dtype)
@@ -108,9 +117,15 @@ class DataDrivenReach(nn.Module):
         if len(fixed) != len(tuple(translation_invariant_dims)) or any(not -n <= d < n for d in translation_invariant_dims):
             raise ValueError(f"`translation_invariant_dims`={tuple(translation_invariant_dims)} must be distinct state indices < {n}")
         free = [d for d in range(n) if d not in fixed]
+        domain_low, domain_high = _domain(domain, n + m, dtype)
+        if domain is not None:
+            points = torch.cat((x_minus, u_minus), dim=1)
+            keep = ((points >= domain_low) & (points <= domain_high)).all(-1)
+            x_minus, x_plus, u_minus = x_minus[keep], x_plus[keep], u_minus[keep]
         n_samples = x_minus.shape[0]
         if n_samples < 1 + len(free) + m:
-            raise ValueError(f"need at least {1 + len(free) + m} transitions to fit, got {n_samples}")
+            where = " in `domain`" if domain is not None else ""
+            raise ValueError(f"need at least {1 + len(free) + m} transitions{where} to fit, got {n_samples}")
 
         w_c = noise.center.to(dtype)
         w_g = noise.generators.to(dtype)
@@ -141,6 +156,8 @@ class DataDrivenReach(nn.Module):
             residual_high=r_hi,
             noise_center=w_c,
             noise_generators=w_g,
+            domain_low=domain_low,
+            domain_high=domain_high,
             x_minus=x_minus,
             x_plus=x_plus,
             u_minus=u_minus,
@@ -288,7 +305,33 @@ class DataDrivenReach(nn.Module):
         width = generators[-1].shape[1]
         return Zonotope(torch.stack(centers), torch.stack([pad_generators(g, width) for g in generators]))
 
-    # ----------------------------------------------------------------- data region
+    # ----------------------------------------------------------------- domain and data region
+    @property
+    def bounded_domain(self) -> bool:
+        """Whether the model was fitted on a restricted domain (see :meth:`fit`)."""
+        return bool(torch.isfinite(self.domain_low).any() or torch.isfinite(self.domain_high).any())
+
+    def in_domain(self, sets: Zonotope, actions: Tensor) -> Tensor:
+        """Whether the steps from ``sets`` under ``actions`` stay in the model's domain.
+
+        Args:
+            sets: the sets each step starts from, batch ``[..., H]`` (``R_0 .. R_{H-1}``);
+                their interval hulls are tested.
+            actions: ``[..., H, m]``.
+
+        Returns:
+            ``[...]`` bool: every set and action of the sequence lies in the domain.
+        """
+        return self._boxes_in_domain(sets.center, sets.generators.abs().sum(-1), actions)
+
+    def _boxes_in_domain(self, centers: Tensor, radius: Tensor, actions: Tensor) -> Tensor:
+        """:meth:`in_domain` for boxes ``centers ± radius`` ``[..., H, n]``."""
+        n = self.state_dim
+        low, high = self.domain_low.to(centers), self.domain_high.to(centers)
+        inside = ((centers - radius >= low[:n]) & (centers + radius <= high[:n])).all(-1)
+        inside &= ((actions >= low[n:].to(actions)) & (actions <= high[n:].to(actions))).all(-1)
+        return inside.all(-1)
+
     def data_distance(self, states: Tensor, actions: Tensor) -> Tensor:
         """Scaled distance from ``(states, actions)`` to the nearest data point: ``[...]``.
 
@@ -316,8 +359,11 @@ class DataDrivenReach(nn.Module):
     def load(cls, path: str | Path, map_location=None) -> DataDrivenReach:
         """Read a model written by :meth:`save`."""
         state = torch.load(path, map_location=map_location, weights_only=True)
-        return cls(TensorDict(state["params"]), state["translation_invariant_dims"], state["covering_radius"],
-                   state["max_generators"])
+        params = TensorDict(state["params"])
+        if "domain_low" not in params.keys():  # written before domains existed: unrestricted
+            size = params["state_matrix"].shape[0] + params["input_matrix"].shape[1]
+            params["domain_low"], params["domain_high"] = _domain(None, size, params["state_matrix"].dtype)
+        return cls(params, state["translation_invariant_dims"], state["covering_radius"], state["max_generators"])
 
     def _apply(self, fn, recurse=True):
         self._cache.clear()
@@ -340,6 +386,21 @@ class DataDrivenReach(nn.Module):
                 drift[j] = sum(powers[i] @ k for i in range(j + 1))
             self._cache[key] = (torch.stack(powers[1:]), transfer.reshape(horizon * n, horizon * m), drift)
         return self._cache[key]
+
+
+def _domain(domain, size: int, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+    """``(low, high)`` ``[size]`` of a ``fit(domain=...)`` argument (``±inf`` for ``None``)."""
+    if domain is None:
+        return torch.full((size,), -torch.inf, dtype=dtype), torch.full((size,), torch.inf, dtype=dtype)
+    if not isinstance(domain, (tuple, list)) or len(domain) != 2:
+        raise ValueError("`domain` must be a pair (low, high) of bounds on (state, action)")
+    low, high = (torch.as_tensor(bound, dtype=dtype) for bound in domain)
+    if low.shape != (size,) or high.shape != (size,):
+        raise ValueError(f"`domain` bounds must have shape [{size}] (state dims then action dims), "
+                         f"got {tuple(low.shape)} and {tuple(high.shape)}")
+    if torch.isnan(low).any() or torch.isnan(high).any() or bool((low >= high).any()):
+        raise ValueError("`domain` needs low < high in every dim (use ±inf for no bound)")
+    return low, high
 
 
 def _rows(name: str, value, dtype: torch.dtype) -> Tensor:

@@ -1,0 +1,55 @@
+"""The fitted sets contain what the simulated robots actually do (the true MuJoCo system)."""
+import pytest
+import torch
+
+import envs
+from torchrl_brsl.reach import DataDrivenReach, collect_offline_data
+from torchrl_brsl.sets import Zonotope
+
+# the recipes' linear-servo settings, the offline data they collect and the horizon they check
+CASES = {
+    "diffdrive_nav": ({"max_acceleration": None, "max_turn_acceleration": None}, 2000, 4),
+    "point_boxes": ({"max_acceleration": None}, 500, 4),
+}
+
+
+def _uniform(info, *shape):
+    low, high = info.action_low.double(), info.action_high.double()
+    return low + (high - low) * torch.rand(*shape, low.shape[-1], dtype=torch.float64)
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_sampled_true_trajectories_stay_in_the_reachable_sets(name):
+    options, steps, horizon = CASES[name]
+    torch.manual_seed(0)
+    info = envs.safety_info(name)
+    data = collect_offline_data(envs.make(name, empty=True, seed=11, **options), steps)
+    reach = DataDrivenReach.from_data(data, Zonotope(info.noise_center.double(), info.noise_generators.double()),
+                                      translation_invariant_dims=info.position_dims, max_generators=30)
+    env = envs.make(name, empty=True, seed=12, episode_steps=10_000, **options)
+    starts, plans, visited = [], [], []
+    while len(starts) < 40:
+        td = env.reset()
+        for _ in range(int(torch.randint(0, 6, ()))):  # a random state of the operating regime
+            td["action"] = _uniform(info).float()
+            td = env.step_mdp(env.step(td))
+        plan = _uniform(info, horizon)
+        if len(starts) % 2:  # every other plan: one action, then the braking failsafe
+            plan[1:] = info.braking_action.double()
+        x0, states = td["state"].double(), []
+        for action in plan:
+            td["action"] = action.float()
+            td = env.step(td)
+            states.append(td["next", "state"].double())
+            td = env.step_mdp(td)
+        if td["done"]:  # left the data region: no guarantee is claimed there
+            continue
+        starts.append(x0)
+        plans.append(plan)
+        visited.append(torch.stack(states))
+    sets = reach.reach(Zonotope.from_point(torch.stack(starts)), torch.stack(plans))  # batch [40, H]
+    inside = sets.contains(torch.stack(visited))
+    assert inside.all(), f"{int((~inside).sum())} of {inside.numel()} true states outside their sets"
+    # and the position sets are tight enough to navigate with: a few cm after H steps
+    radius = sets.generators[:, -1, list(info.position_dims)].abs().sum(-1).amax()
+    assert radius < 0.1
