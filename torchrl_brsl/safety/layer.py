@@ -22,6 +22,7 @@ ADJUSTERS = {"gradient": GradientAdjuster, "facet_qp": FacetQPAdjuster}
 DIAGNOSTICS = {
     "intervened": torch.bool,  # the proposal was not executed as proposed
     "failsafe": torch.bool,  # no safe plan found: braking from the state, or the previous safe plan
+    "local": torch.bool,  # the executed plan was verified by the local (restricted-domain) model
     "invalid_input": torch.bool,  # NaN/inf in the state, proposal or obstacles
     "min_collision_value": torch.float64,  # min v* of the (adjusted) proposal's sets (inf: no obstacle)
     "adjust_iterations": torch.int64,
@@ -43,6 +44,12 @@ class BRSLSafetyLayer(Transform):
     the failsafe takes over: braking from the measured state if its sets verify, else the
     previous safe plan, shifted by one step (at episode start: stay stopped).
     Only the first action of the safe plan reaches the robot.
+
+    With a ``local_reach`` (a model fitted on a restricted domain, e.g. low speeds, whose
+    sets are much tighter), a proposal that ``reach`` cannot verify, even adjusted, is tried
+    again under the local model with its actions clipped into the local domain, and so is
+    braking: near obstacles the robot then creeps and turns instead of freezing. Local plans
+    count only when every step stays in the local domain (:meth:`DataDrivenReach.in_domain`).
 
     Safety (paper Theorem 1): every executed action begins a sequence whose reachable sets,
     braking tail included, were verified collision-free and end stopped; so under the
@@ -77,6 +84,8 @@ class BRSLSafetyLayer(Transform):
             (:class:`FacetQPAdjuster`, faster), a configured adjuster instance, or ``None`` to
             never adjust.
         penalty: reward penalty for unsafe proposals.
+        local_reach: an optional second model of a restricted domain (see above), with the
+            same state and action dims.
         set_generators: generator width of the projected reachable sets.
         margin: sets count as colliding when ``v* <= 1 + margin``.
         state_key, obstacles_key, plan_key, action_key, safe_action_key, safe_plan_key,
@@ -100,7 +109,7 @@ class BRSLSafetyLayer(Transform):
                  action_key: NestedKey = "action", safe_action_key: NestedKey = "safe_action",
                  safe_plan_key: NestedKey = "safe_plan", safe_steps_key: NestedKey = "safe_plan_steps",
                  diagnostics_key: NestedKey = "brsl",
-                 reward_key: NestedKey = "reward"):
+                 reward_key: NestedKey = "reward", local_reach: DataDrivenReach | None = None):
         super().__init__(in_keys=[], out_keys=[])
         if not isinstance(reach, DataDrivenReach):
             raise ValueError(f"`reach` must be a DataDrivenReach, got {type(reach).__name__}")
@@ -111,7 +120,13 @@ class BRSLSafetyLayer(Transform):
         if failsafe.hold_action.shape[-1] != reach.action_dim:
             raise ValueError(f"`failsafe.hold_action` has {failsafe.hold_action.shape[-1]} entries, the model "
                              f"expects {reach.action_dim} actions")
+        if local_reach is not None and (not isinstance(local_reach, DataDrivenReach)
+                                        or (local_reach.state_dim, local_reach.action_dim)
+                                        != (reach.state_dim, reach.action_dim)):
+            raise ValueError(f"`local_reach` must be a DataDrivenReach with {reach.state_dim} states and "
+                             f"{reach.action_dim} actions, like `reach`")
         self.reach = reach
+        self.local_reach = local_reach
         self.failsafe = failsafe
         self.n_plan = int(n_plan)
         self.horizon = self.n_plan + int(failsafe.n_brk)
@@ -134,6 +149,7 @@ class BRSLSafetyLayer(Transform):
         self.diagnostics_key, self.reward_key = diagnostics_key, reward_key
         self._bounds = (action_low, action_high)
         self._checker: PlanChecker | None = None
+        self._local_checker: PlanChecker | None = None
         self._holds: dict = {}
         if action_low is not None and action_high is not None:
             _ = self.checker  # validate the settings now rather than at the first step
@@ -150,12 +166,25 @@ class BRSLSafetyLayer(Transform):
                     raise ValueError("`action_low`/`action_high` must be given when the env has no bounded action spec")
                 low, high = spec.space.low.reshape(-1, spec.shape[-1])[0], spec.space.high.reshape(-1, spec.shape[-1])[0]
             dtype = self.reach.state_matrix.dtype
-            self._checker = PlanChecker(
-                self.reach, self.failsafe, self.horizon, stop_dims=self.stop_dims, stop_tolerance=self.stop_tolerance,
-                action_low=torch.as_tensor(low, dtype=dtype), action_high=torch.as_tensor(high, dtype=dtype),
-                position_dims=self.position_dims, set_generators=self.set_generators, margin=self.margin,
-                action_dtype=self._action_dtype())
+            self._checker = self._plan_checker(self.reach, torch.as_tensor(low, dtype=dtype),
+                                               torch.as_tensor(high, dtype=dtype))
         return self._checker
+
+    @property
+    def local_checker(self) -> PlanChecker | None:
+        """The verifier of ``local_reach``, its actions clipped into the local domain (or None)."""
+        if self.local_reach is not None and self._local_checker is None:
+            n, checker = self.local_reach.state_dim, self.checker
+            low = torch.maximum(checker.action_low, self.local_reach.domain_low[n:].to(checker.action_low))
+            high = torch.minimum(checker.action_high, self.local_reach.domain_high[n:].to(checker.action_high))
+            self._local_checker = self._plan_checker(self.local_reach, low, high)
+        return self._local_checker
+
+    def _plan_checker(self, reach: DataDrivenReach, low: Tensor, high: Tensor) -> PlanChecker:
+        return PlanChecker(reach, self.failsafe, self.horizon, stop_dims=self.stop_dims,
+                           stop_tolerance=self.stop_tolerance, action_low=low, action_high=high,
+                           position_dims=self.position_dims, set_generators=self.set_generators,
+                           margin=self.margin, action_dtype=self._action_dtype())
 
     def _hold_plan(self, batch: torch.Size, like: Tensor) -> Tensor:
         hold = self.failsafe.hold_action.to(device=like.device, dtype=torch.float64)
@@ -321,23 +350,49 @@ class BRSLSafetyLayer(Transform):
                 values[idx] = adjusted.evaluation.values
                 iterations[idx] = adjusted.iterations
 
+        local = torch.zeros_like(accepted)
+        retry = ~accepted if valid is None else valid & ~accepted
+        if self.local_reach is not None and bool(retry.any()):
+            idx = retry.nonzero().squeeze(-1)
+            sub = self._local_subset(idx, obstacle_generators, retry)
+            candidate = plan[idx].clamp(sub.action_low, sub.action_high)
+            with torch.no_grad():
+                evaluation = sub.evaluate(x0[idx], candidate, obstacle_centers[idx], obstacle_generators[idx],
+                                          obstacle_mask[idx])
+            if self.adjuster is not None and not bool(evaluation.safe.all()):
+                evaluation = self.adjuster(sub, x0[idx], candidate, obstacle_centers[idx], obstacle_generators[idx],
+                                           obstacle_mask[idx], start=start,
+                                           reference=safe_plan[idx].to(dtype)).evaluation
+            accepted, actions, values = accepted.clone(), actions.clone(), values.clone()
+            accepted[idx] = evaluation.safe
+            local[idx] = evaluation.safe
+            actions[idx] = torch.where(evaluation.safe.view(-1, 1, 1), evaluation.actions, actions[idx])
+            values[idx] = torch.where(evaluation.safe.view(-1, 1, 1), evaluation.values, values[idx])
+
         # No plan accepted: brake from the measured state if that verifies, else keep the previous
         # safe plan. Re-verifying the braking manoeuvre every step is a closed-loop hold: where a
         # stopped robot does not stay stopped by itself (noise on a double integrator), holding
         # open loop would drift past the verified horizon.
-        braking = ~accepted if valid is None else valid & ~accepted
         usable = accepted
-        if bool(braking.any()):
+        for is_local in (False, True) if self.local_reach is not None else (False,):
+            braking = ~usable if valid is None else valid & ~usable
+            if not bool(braking.any()):
+                break
             idx = braking.nonzero().squeeze(-1)
-            sub = checker if bool(braking.all()) else checker._subset(idx)
-            brake = self.failsafe.actions(x0[idx]).clamp(checker.action_low, checker.action_high)
-            brake = brake.to(checker.action_dtype).to(dtype).unsqueeze(1)
+            if is_local:
+                sub = self._local_subset(idx, obstacle_generators, braking)
+            else:
+                sub = checker if bool(braking.all()) else checker._subset(idx)
+            brake = self.failsafe.actions(x0[idx]).clamp(sub.action_low, sub.action_high)
+            brake = brake.to(sub.action_dtype).to(dtype).unsqueeze(1)
             with torch.no_grad():
                 braked = sub.evaluate(x0[idx], brake, obstacle_centers[idx], obstacle_generators[idx],
                                       obstacle_mask[idx])
-            usable = accepted.clone()
+            usable, actions = usable.clone(), actions.clone()
             usable[idx] = braked.safe
-            actions = actions.clone()
+            if is_local:
+                local = local.clone()
+                local[idx] = braked.safe
             actions[idx] = torch.where(braked.safe.view(-1, 1, 1), braked.actions, actions[idx])
         # Beyond the verified part of the safe plan only the failsafe remains: apply the braking
         # policy to the measured state (a closed-loop hold, paper Assumption 1) rather than an
@@ -355,11 +410,18 @@ class BRSLSafetyLayer(Transform):
         diagnostics = {
             "intervened": ~proposal_safe,
             "failsafe": ~accepted,
+            "local": local,
             "invalid_input": torch.zeros_like(accepted) if valid is None else ~valid,
             "min_collision_value": values.flatten(1).amin(-1),
             "adjust_iterations": iterations,
         }
         return executed, next_safe_plan, next_steps, diagnostics
+
+    def _local_subset(self, idx: Tensor, obstacle_generators: Tensor, selected: Tensor) -> PlanChecker:
+        """The local checker for the envs ``idx`` (its facet table cached for the whole batch)."""
+        local = self.local_checker
+        local.checker(obstacle_generators)
+        return local if bool(selected.all()) else local._subset(idx)
 
     def _hold(self, like: Tensor) -> Tensor:
         """The failsafe's hold action in ``like``'s dtype and device (cached)."""

@@ -21,7 +21,8 @@ class PlanEvaluation(NamedTuple):
         centers: ``[B, T, n]`` centres of ``R_1 .. R_T``.
         values: ``[B, T, K]`` collision values v* (``inf`` for masked obstacles).
         stop_excess: ``[B]`` how far the final set is from "stopped" (<= 0 means stopped).
-        safe: ``[B]`` every set collision-free (``v* > 1 + margin``) and the final set stopped.
+        safe: ``[B]`` every set collision-free (``v* > 1 + margin``), the final set stopped and,
+            for a model of a restricted domain, every step inside it.
     """
 
     actions: Tensor
@@ -93,6 +94,9 @@ class PlanChecker:
         self._stop_index = _index(self.stop_dims)
         self._threshold = 1 + self.margin
         self._stop_room = self.stop_tolerance - self.stop_radius  # stopped: |final centre| <= room
+        # a model of a restricted domain: the boxes of R_0 (a point) .. R_{T-1} must stay in it
+        self._domain_radius = (torch.cat((errors.new_zeros(1, errors.shape[1]), errors[:-1].abs().sum(-1)))
+                               if reach.bounded_domain else None)
 
     def checker(self, obstacle_generators: Tensor) -> ZonotopeCollisionChecker:
         """The facet table for ``obstacle_generators`` ``[B, K, d, p]`` (rebuilt on change)."""
@@ -248,7 +252,11 @@ class PlanChecker:
             collision_free = values.amin((-1, -2)) > self._threshold
         else:
             collision_free = torch.ones_like(stop_excess, dtype=torch.bool)
-        evaluation = PlanEvaluation(actions, centers, values, stop_excess, collision_free & (stop_excess <= 0))
+        safe = collision_free & (stop_excess <= 0)
+        if self._domain_radius is not None:
+            starts = torch.cat((x0.to(centers).unsqueeze(1), centers[:, :-1]), dim=1)
+            safe = safe & self.reach._boxes_in_domain(starts, self._domain_radius.to(centers), actions)
+        evaluation = PlanEvaluation(actions, centers, values, stop_excess, safe)
         return evaluation, (Gauge(products, best) if detail else None)
 
     def facet_weights(self) -> Tensor:
