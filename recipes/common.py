@@ -2,8 +2,8 @@
 
 A run directory (``runs/<task>/<method>/seed<k>/``) holds everything a run needs to be
 evaluated or resumed: ``config.yaml`` (the resolved config), ``reach.pt`` (the fitted
-reachability model, BRSL only), ``checkpoint.pt``, the CSV logs under ``logs/`` and the
-evaluation outputs.
+reachability model, BRSL only; ``local_reach.pt`` for a task's low-speed model),
+``checkpoint.pt``, the CSV logs under ``logs/`` and the evaluation outputs.
 """
 from __future__ import annotations
 
@@ -13,6 +13,7 @@ import os
 import random
 import warnings
 from pathlib import Path
+from typing import NamedTuple
 
 warnings.filterwarnings("ignore", category=DeprecationWarning, module="torchrl")
 
@@ -60,7 +61,7 @@ def make_base_env(task: DictConfig, seed: int, *, layout: int | None = None, emp
     return envs.make(task.name, seed=seed, empty=empty, layout=layout, **options)
 
 
-def make_env(cfg: DictConfig, seed: int, reach: DataDrivenReach | None = None, layout: int | None = None):
+def make_env(cfg: DictConfig, seed: int, reach: SafetyModels | None = None, layout: int | None = None):
     """The training / evaluation env: the task, an episode-reward counter and, with ``reach``, the layer.
 
     ``episode_reward`` sums the task's reward before the layer's penalty (the paper's metric).
@@ -97,43 +98,102 @@ def regime_policy(task: DictConfig, max_speed: float):
     return policy
 
 
-def offline_data(task: DictConfig, cache_dir: str | Path, seed: int = 0):
-    """``task.offline.steps`` transitions of random inputs in the empty task, cached on disk."""
+def local_domain(task: DictConfig) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(low, high)`` ``[n + m]`` of ``task.local`` (``null`` bounds: unbounded)."""
+    info = envs.safety_info(task.name)
+    bounds = []
+    for side, size, default in (("low", info.state_dim, -np.inf), ("high", info.state_dim, np.inf)):
+        state = task.local.get(f"state_{side}") or [default] * size
+        action = task.local.get(f"action_{side}") or [default] * info.action_dim
+        bounds.append(torch.tensor([float(v) for v in [*state, *action]], dtype=torch.float64))
+    return bounds[0], bounds[1]
+
+
+def _uniform_policy(low: torch.Tensor, high: torch.Tensor):
+    def policy(td):
+        td["action"] = low + (high - low) * torch.rand_like(low)
+        return td
+
+    return policy
+
+
+def offline_data(task: DictConfig, cache_dir: str | Path, seed: int = 0, local: bool = False):
+    """Random-input transitions in the empty task, cached on disk.
+
+    ``task.offline.steps`` of them for the main model, or with ``local``, ``task.local.steps``
+    with inputs drawn inside the local domain's action bounds.
+    """
+    options = task.local if local else task.offline
     spec = {"task": task.name, "env": OmegaConf.to_container(task.env, resolve=True),
-            "offline": OmegaConf.to_container(task.offline, resolve=True), "seed": seed}
+            "offline": OmegaConf.to_container(options, resolve=True), "seed": seed, "local": local}
     digest = hashlib.sha1(json.dumps(spec, sort_keys=True).encode()).hexdigest()[:10]
-    path = Path(cache_dir) / f"{task.name}-{digest}"
+    path = Path(cache_dir) / f"{task.name}-{'local-' if local else ''}{digest}"
     if (path / "meta.json").exists():
         return load_offline_data(path)
     torch.manual_seed(seed)
-    max_speed = task.offline.get("max_speed")
-    policy = regime_policy(task, float(max_speed)) if max_speed is not None else None
-    data = collect_offline_data(make_base_env(task, seed + 12345, empty=True), int(task.offline.steps), policy=policy)
+    if local:
+        info = envs.safety_info(task.name)
+        low, high = local_domain(task)
+        policy = _uniform_policy(torch.maximum(info.action_low, low[info.state_dim:].float()),
+                                 torch.minimum(info.action_high, high[info.state_dim:].float()))
+    else:
+        max_speed = task.offline.get("max_speed")
+        policy = regime_policy(task, float(max_speed)) if max_speed is not None else None
+    data = collect_offline_data(make_base_env(task, seed + 12345, empty=True), int(options.steps), policy=policy)
     path.parent.mkdir(parents=True, exist_ok=True)
     save_offline_data(data, path)
     return data
 
 
-def fit_reach(cfg: DictConfig, cache_dir: str | Path) -> DataDrivenReach:
-    """Offline data (cached) and the fitted reachability model (paper Alg. 2)."""
-    info = envs.safety_info(cfg.task.name)
-    noise = Zonotope(info.noise_center.double(), info.noise_generators.double())
-    return DataDrivenReach.from_data(offline_data(cfg.task, cache_dir, cfg.seed), noise,
-                                     translation_invariant_dims=info.position_dims,
-                                     max_generators=cfg.method.max_generators)
+class SafetyModels(NamedTuple):
+    """The layer's reachability models: ``reach`` (paper Alg. 2) and, when the task config has a
+    ``local`` section, a second model of a low-speed domain (see :class:`BRSLSafetyLayer`)."""
+
+    reach: DataDrivenReach
+    local: DataDrivenReach | None = None
+
+    @classmethod
+    def fit(cls, cfg: DictConfig, cache_dir: str | Path) -> SafetyModels:
+        """Offline data (cached) and the fitted models."""
+        info = envs.safety_info(cfg.task.name)
+        noise = Zonotope(info.noise_center.double(), info.noise_generators.double())
+        options = {"translation_invariant_dims": info.position_dims, "max_generators": cfg.method.max_generators}
+        reach = DataDrivenReach.from_data(offline_data(cfg.task, cache_dir, cfg.seed), noise, **options)
+        local = None
+        if cfg.task.get("local") is not None:
+            local = DataDrivenReach.from_data(offline_data(cfg.task, cache_dir, cfg.seed, local=True), noise,
+                                              domain=local_domain(cfg.task), **options)
+        return cls(reach, local)
+
+    def save(self, run_dir: str | Path) -> None:
+        self.reach.save(Path(run_dir) / "reach.pt")
+        if self.local is not None:
+            self.local.save(Path(run_dir) / "local_reach.pt")
+
+    @classmethod
+    def load(cls, run_dir: str | Path) -> SafetyModels:
+        local = Path(run_dir) / "local_reach.pt"
+        return cls(DataDrivenReach.load(Path(run_dir) / "reach.pt"),
+                   DataDrivenReach.load(local) if local.exists() else None)
 
 
 def horizon(cfg: DictConfig) -> tuple[int, int]:
-    """``(n_plan, n_brk)``: the task's SafetyInfo unless the task config overrides them."""
+    """``(n_plan, n_brk)``: the task's SafetyInfo unless the task config overrides them.
+
+    Without a planner the proposal is one action, so ``n_plan = 1``: the layer checks that
+    action and the braking tail, ``1 + n_brk`` sets, rather than sets that keep growing
+    after the robot has stopped.
+    """
     info = envs.safety_info(cfg.task.name)
-    n_plan = cfg.task.safety.get("n_plan") or info.n_plan
+    n_plan = 1 if cfg.method.get("planner", "none") == "none" else cfg.task.safety.get("n_plan") or info.n_plan
     n_brk = cfg.task.safety.get("n_brk") or info.n_brk
     return int(n_plan), int(n_brk)
 
 
-def make_layer(cfg: DictConfig, reach: DataDrivenReach) -> BRSLSafetyLayer:
+def make_layer(cfg: DictConfig, models: SafetyModels) -> BRSLSafetyLayer:
     """The safety layer with the task's SafetyInfo; stop tolerance = final set radius + slack."""
     info = envs.safety_info(cfg.task.name)
+    reach = models.reach
     n_plan, n_brk = horizon(cfg)
     radius = reach.error_generators_sequence(n_plan + n_brk)[-1, list(info.velocity_dims)].abs().sum(-1)
     braking = info.braking_policy if cfg.task.safety.braking == "policy" else None
@@ -143,7 +203,8 @@ def make_layer(cfg: DictConfig, reach: DataDrivenReach) -> BRSLSafetyLayer:
     return BRSLSafetyLayer(
         reach, Failsafe(info.braking_action, n_brk, policy=braking), n_plan, stop_dims=info.velocity_dims,
         stop_tolerance=(radius + cfg.method.stop_slack).tolist(), action_low=info.action_low,
-        action_high=info.action_high, adjuster=adjusters[cfg.method.adjuster](), penalty=cfg.method.penalty)
+        action_high=info.action_high, adjuster=adjusters[cfg.method.adjuster](), penalty=cfg.method.penalty,
+        local_reach=models.local)
 
 
 # ----------------------------------------------------------------------------- TD3 networks
@@ -190,10 +251,10 @@ def make_planner(cfg: DictConfig, policy, env):
 
 # ----------------------------------------------------------------------------- runs on disk
 def load_run(run_dir: str | Path):
-    """``(cfg, actor, reach)`` of a trained run (``reach`` is None for methods without the layer)."""
+    """``(cfg, actor, models)`` of a trained run (``models`` is None for methods without the layer)."""
     run_dir = Path(run_dir)
     cfg = OmegaConf.load(run_dir / "config.yaml")
-    reach = DataDrivenReach.load(run_dir / "reach.pt") if cfg.method.layer else None
+    reach = SafetyModels.load(run_dir) if cfg.method.layer else None
     env = make_env(cfg, seed=0, reach=reach)
     actor = make_actor(env, cfg.hidden)
     state = torch.load(run_dir / "checkpoint.pt", map_location="cpu", weights_only=False)

@@ -26,7 +26,7 @@ from torchrl.objectives import SoftUpdate, TD3Loss
 from torchrl.record.loggers import get_logger
 
 from recipes import common
-from torchrl_brsl.reach import DataDrivenReach
+from torchrl_brsl.modules import DampedGaussianModule
 
 
 def train(cfg: DictConfig, run_dir: str | Path) -> dict:
@@ -45,14 +45,14 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:
         shutil.rmtree(run_dir / "buffer", ignore_errors=True)
     common.seed_everything(cfg.seed + frames)
 
-    # --- the safety layer's reachability model: 500 random-input steps in the empty task, fitted once
+    # --- the safety layer's reachability models: random-input steps in the empty task, fitted once
     reach = None
     if cfg.method.layer:
         if (run_dir / "reach.pt").exists() and ckpt is not None:
-            reach = DataDrivenReach.load(run_dir / "reach.pt")
+            reach = common.SafetyModels.load(run_dir)
         else:
-            reach = common.fit_reach(cfg, cfg.cache_dir)
-            reach.save(run_dir / "reach.pt")
+            reach = common.SafetyModels.fit(cfg, cfg.cache_dir)
+            reach.save(run_dir)
 
     # --- env, actor, critics, exploration, (planner)
     env = common.make_env(cfg, cfg.seed + frames, reach)
@@ -60,9 +60,13 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:
     qvalue = common.make_qvalue(env, cfg.hidden)
     spec = env.full_action_spec["action"]
     half_range = (spec.space.high - spec.space.low) / 2
-    exploration = AdditiveGaussianModule(spec, sigma_init=cfg.exploration.sigma_init,
-                                         sigma_end=cfg.exploration.sigma_end,
-                                         annealing_num_steps=cfg.exploration.annealing_frames, std=half_range)
+    schedules = {"geometric": DampedGaussianModule, "linear": AdditiveGaussianModule}
+    if cfg.exploration.schedule not in schedules:
+        raise ValueError(f"exploration.schedule must be one of {list(schedules)}, got {cfg.exploration.schedule!r}")
+    exploration = schedules[cfg.exploration.schedule](spec, sigma_init=float(cfg.exploration.sigma_init),
+                                                      sigma_end=float(cfg.exploration.sigma_end),
+                                                      annealing_num_steps=cfg.exploration.annealing_frames,
+                                                      std=half_range)
     policy = TensorDictSequential(actor, exploration)
     planning = common.make_planner(cfg, policy, env)  # None, or (planner, world model, its loss, optimiser)
     if planning is not None:
@@ -111,6 +115,8 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:
     collector = Collector(env, policy, frames_per_batch=cfg.frames_per_batch, total_frames=remaining,
                           init_random_frames=max(0, cfg.init_random_frames - frames),
                           auto_register_policy_transforms=False, **collector_kwargs)
+    if collector_kwargs:  # distinct seeds per collector process (the single local env is seeded already)
+        collector.set_seed(cfg.seed + frames)
     logger = get_logger(cfg.logger.backend, logger_name=str(run_dir / "logs"), experiment_name="train",
                         **({"project": cfg.logger.project} if cfg.logger.backend == "wandb" else {})) \
         if cfg.logger.backend else None

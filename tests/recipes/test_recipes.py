@@ -129,3 +129,28 @@ def test_hydra_entry_point(tmp_path):
            "total_frames=100", "init_random_frames=100", *TINY[:1], *TINY[2:5]]
     subprocess.run(cmd, check=True, capture_output=True, cwd=Path(__file__).resolve().parents[2])
     assert (run_dir(tmp_path, "point_boxes", "td3") / "checkpoint.pt").exists()
+
+
+@pytest.mark.parametrize("schedule", ["geometric", "linear"])
+def test_exploration_is_damped_every_frame(tmp_path, schedule):
+    train(config(tmp_path, "point_boxes", "td3", 400, f"exploration.schedule={schedule}", "exploration.sigma_end=0.1"),
+          run_dir(tmp_path, "point_boxes", "td3"))
+    _, sigma = common.read_scalar(run_dir(tmp_path, "point_boxes", "td3"), "train/sigma")
+    assert (sigma[1:] < sigma[:-1]).all() and sigma[-1] == pytest.approx(0.1, rel=1e-4)
+    if schedule == "geometric":  # a constant ratio per batch of frames
+        assert sigma[2] / sigma[1] == pytest.approx(sigma[1] / sigma[0], rel=1e-4)
+    with pytest.raises(ValueError, match="schedule"):
+        train(config(tmp_path, "point_boxes", "td3", 100, "exploration.schedule=cosine"),
+              run_dir(tmp_path, "point_boxes", "other"))
+
+
+def test_without_a_planner_the_layer_checks_one_action_and_the_braking_tail():
+    assert common.horizon(common.compose_config(["task=diffdrive_nav"])) == (1, 3)
+    assert common.horizon(common.compose_config(["task=diffdrive_nav", "method.planner=ensemble"])) == (8, 3)
+    assert common.horizon(common.compose_config(["task=point_circle", "method.planner=ensemble"])) == (5, 12)
+
+
+def test_collector_processes(tmp_path):
+    out = train(config(tmp_path, "point_boxes", "brsl", 400, "num_collectors=2", "collector_backend=process"),
+                run_dir(tmp_path, "point_boxes", "brsl"))
+    assert out["totals"]["frames"] == 400 and out["totals"]["collisions"] == 0
