@@ -154,3 +154,12 @@ def test_collector_processes(tmp_path):
     out = train(config(tmp_path, "point_boxes", "brsl", 400, "num_collectors=2", "collector_backend=process"),
                 run_dir(tmp_path, "point_boxes", "brsl"))
     assert out["totals"]["frames"] == 400 and out["totals"]["collisions"] == 0
+
+
+def test_demo_trains_both_methods_and_prints_the_table(tmp_path, capsys):
+    from recipes.demo import main as demo_main
+
+    demo_main(["--task", "point_boxes", "--frames", "400", "--root", str(tmp_path)])
+    out = capsys.readouterr().out
+    assert "brsl: 400 frames" in out and "td3: 400 frames" in out and "| brsl | td3 |" in out.replace("  ", " ")
+    assert (tmp_path / "point_boxes" / "reward.png").exists()
