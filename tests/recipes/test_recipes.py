@@ -163,3 +163,12 @@ def test_demo_trains_both_methods_and_prints_the_table(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "brsl: 400 frames" in out and "td3: 400 frames" in out and "| brsl | td3 |" in out.replace("  ", " ")
     assert (tmp_path / "point_boxes" / "reward.png").exists()
+
+
+def test_diffdrive_brsl_run_saves_and_reloads_its_local_model(tmp_path):
+    train(config(tmp_path, "diffdrive_nav", "brsl", 100, "init_random_frames=100", "task.episode_steps=30"),
+          run_dir(tmp_path, "diffdrive_nav", "brsl"))
+    assert (run_dir(tmp_path, "diffdrive_nav", "brsl") / "local_reach.pt").exists()
+    _, _, models = common.load_run(run_dir(tmp_path, "diffdrive_nav", "brsl"))
+    assert models.local is not None and models.local.bounded_domain and not models.reach.bounded_domain
+    assert evaluate_run(run_dir(tmp_path, "diffdrive_nav", "brsl"), episodes=1)["collision_rate"] == 0.0
