@@ -8,7 +8,7 @@ to ``runs/demo/<task>/reward.png``.
 
 The default task is ``point_circle`` (paper Table II): the reward is highest on a circle that
 lies outside the safe box, so plain TD3 learns to cross the walls while BRSL learns to circle
-inside them; 8,000 frames per method take about 5 minutes on 2 cores. ``--task point_boxes`` is a
+inside them; 8,000 frames per method take about 3 minutes on 2 cores. ``--task point_boxes`` is a
 faster test bed on which random actions collide in most episodes.
 """
 from __future__ import annotations

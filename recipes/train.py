@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import shutil
 import time
+import warnings
 from pathlib import Path
 
 import hydra
@@ -63,10 +64,12 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:
     schedules = {"geometric": DampedGaussianModule, "linear": AdditiveGaussianModule}
     if cfg.exploration.schedule not in schedules:
         raise ValueError(f"exploration.schedule must be one of {list(schedules)}, got {cfg.exploration.schedule!r}")
-    exploration = schedules[cfg.exploration.schedule](spec, sigma_init=float(cfg.exploration.sigma_init),
-                                                      sigma_end=float(cfg.exploration.sigma_end),
-                                                      annealing_num_steps=cfg.exploration.annealing_frames,
-                                                      std=half_range)
+    with warnings.catch_warnings():  # TorchRL copies the per-dim `std` tensor with torch.tensor
+        warnings.filterwarnings("ignore", message="To copy construct from a tensor")
+        exploration = schedules[cfg.exploration.schedule](spec, sigma_init=float(cfg.exploration.sigma_init),
+                                                          sigma_end=float(cfg.exploration.sigma_end),
+                                                          annealing_num_steps=cfg.exploration.annealing_frames,
+                                                          std=half_range)
     policy = TensorDictSequential(actor, exploration)
     planning = common.make_planner(cfg, policy, env)  # None, or (planner, world model, its loss, optimiser)
     if planning is not None:
