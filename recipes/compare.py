@@ -37,7 +37,7 @@ def compare(task_dir: str | Path, episodes: int | None = None, reuse: bool = Fal
     for method in sorted(runs, key=lambda m: (ORDER.index(m) if m in ORDER else len(ORDER), m)):
         per_seed = [_read_eval(d) if reuse and (d / "eval.csv").exists() else evaluate_run(d, episodes)
                     for d in runs[method]]
-        merged = {k: (v if isinstance(v, str) else float(np.mean([r[k] for r in per_seed])))
+        merged = {k: (v if isinstance(v, str) else float(np.mean([r.get(k, np.nan) for r in per_seed])))
                   for k, v in per_seed[0].items()}
         merged["max_speed"] = max(r["max_speed"] for r in per_seed)
         merged["seeds"] = len(per_seed)

@@ -41,7 +41,8 @@ def run_episodes(cfg, actor, reach, episodes: int | None = None, seed: int = 10_
     actor forward pass plus the layer's time, per step.
     """
     n = int(episodes or cfg.task.eval_layouts)
-    rewards, goals, collided, contact_steps, speeds, times, interventions, failsafes = [], [], [], [], [], [], [], []
+    rewards, goals, collided, contact_steps, speeds, times = [], [], [], [], [], []
+    interventions, failsafes, holds = [], [], []
     frames = []
     for layout in range(n):
         env = common.make_env(cfg, seed=seed + layout, reach=reach, layout=layout)
@@ -59,6 +60,7 @@ def run_episodes(cfg, actor, reach, episodes: int | None = None, seed: int = 10_
             if reach is not None:
                 interventions.append(nxt["brsl", "intervened"].item())
                 failsafes.append(nxt["brsl", "failsafe"].item())
+                holds.append(nxt["brsl", "unverified_hold"].item())
             reward = nxt["episode_reward"].item()  # task reward, before the layer's penalty
             speeds.append(nxt["speed"].item())
             contact_steps.append(nxt["collision"].item())
@@ -86,6 +88,7 @@ def run_episodes(cfg, actor, reach, episodes: int | None = None, seed: int = 10_
         "compute_time_mean": float(times.mean()), "compute_time_std": float(times.std()),
         "intervention_rate": float(np.mean(interventions)) if interventions else float("nan"),
         "failsafe_rate": float(np.mean(failsafes)) if failsafes else float("nan"),
+        "unverified_hold_rate": float(np.mean(holds)) if holds else float("nan"),
     }
     return result
 
@@ -107,7 +110,9 @@ def _write_gif(frames, path) -> None:
 
 
 def cell(result: dict, key: str) -> str:
-    """One table cell in the paper's format."""
+    """One table cell in the paper's format (``–`` for a metric the run's evaluation lacks)."""
+    if key not in result and key not in ("speed", "compute_time"):
+        return "–"
     if key == "speed":
         return f"{result['mean_speed']:.2f} / {result['max_speed']:.2f}"
     if key == "compute_time":
@@ -124,7 +129,8 @@ def table(results: list[dict], kind: str) -> str:
     lines = [f"**{title}: {results[0]['task']}, {results[0]['episodes']} evaluation layouts**", "",
              "| | " + " | ".join(names) + " |", "|---" * (len(names) + 1) + "|"]
     extra = [("contact_steps", "Steps in contact [%]"), ("intervention_rate", "Interventions [share of steps]"),
-             ("failsafe_rate", "Failsafe [share of steps]")]
+             ("failsafe_rate", "Failsafe [share of steps]"),
+             ("unverified_hold_rate", "Unverified hold [share of steps]")]
     for key, label in ROWS[kind] + extra:
         lines.append(f"| {label} | " + " | ".join(cell(r, key) for r in results) + " |")
     return "\n".join(lines)

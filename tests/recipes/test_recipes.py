@@ -75,6 +75,7 @@ def test_evaluate_and_compare(point_boxes_runs, capsys):
     tmp = point_boxes_runs[0]
     result = evaluate_run(run_dir(tmp, "point_boxes", "brsl"))
     assert result["episodes"] == 2 and result["collision_rate"] == 0.0
+    assert 0.0 <= result["unverified_hold_rate"] <= result["failsafe_rate"]
     assert (run_dir(tmp, "point_boxes", "brsl") / "eval.md").exists()
     evaluate_main([str(run_dir(tmp, "point_boxes", "td3")), "--episodes", "1"])
     out = capsys.readouterr().out

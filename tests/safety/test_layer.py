@@ -177,3 +177,18 @@ def test_adjuster_by_name():
     assert make_layer(TASK, adjuster=None).adjuster is None
     with pytest.raises(ValueError, match="adjuster"):
         make_layer(TASK, adjuster="newton")
+
+
+def test_holding_beyond_every_verified_plan_is_flagged():
+    env = layered_env()
+    td = env.reset()
+    assert not td["brsl", "unverified_hold"].item()
+    td["action"] = torch.tensor([0.1, 0.0])
+    free = env.step(td.clone())["next", "brsl"]
+    assert not free["failsafe"].item() and not free["unverified_hold"].item()
+    # an obstacle on the robot: nothing verifies, and at episode start no verified plan is left
+    td["obstacles", "center"][0] = td["state"][:2].to(td["obstacles", "center"].dtype)
+    td["obstacles", "mask"][0] = True
+    blocked = env.step(td)["next"]
+    assert blocked["brsl", "failsafe"].item() and blocked["brsl", "unverified_hold"].item()
+    assert torch.equal(blocked["safe_action"], torch.zeros(2))

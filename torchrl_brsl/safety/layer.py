@@ -23,6 +23,7 @@ DIAGNOSTICS = {
     "intervened": torch.bool,  # the proposal was not executed as proposed
     "failsafe": torch.bool,  # no safe plan found: braking from the state, or the previous safe plan
     "local": torch.bool,  # the executed plan was verified by the local (restricted-domain) model
+    "unverified_hold": torch.bool,  # beyond every verified plan: the braking policy holds (paper Assumption 1)
     "invalid_input": torch.bool,  # NaN/inf in the state, proposal or obstacles
     "min_collision_value": torch.float64,  # min v* of the (adjusted) proposal's sets (inf: no obstacle)
     "adjust_iterations": torch.int64,
@@ -411,6 +412,7 @@ class BRSLSafetyLayer(Transform):
             "intervened": ~proposal_safe,
             "failsafe": ~accepted,
             "local": local,
+            "unverified_hold": exhausted,
             "invalid_input": torch.zeros_like(accepted) if valid is None else ~valid,
             "min_collision_value": values.flatten(1).amin(-1),
             "adjust_iterations": iterations,
