@@ -61,14 +61,14 @@ def make_base_env(task: DictConfig, seed: int, *, layout: int | None = None, emp
     return envs.make(task.name, seed=seed, empty=empty, layout=layout, **options)
 
 
-def make_env(cfg: DictConfig, seed: int, reach: SafetyModels | None = None, layout: int | None = None):
-    """The training / evaluation env: the task, an episode-reward counter and, with ``reach``, the layer.
+def make_env(cfg: DictConfig, seed: int, models: SafetyModels | None = None, layout: int | None = None):
+    """The training / evaluation env: the task, an episode-reward counter and, with ``models``, the layer.
 
     ``episode_reward`` sums the task's reward before the layer's penalty (the paper's metric).
     """
     transforms = [RewardSum(in_keys=["reward"], out_keys=["episode_reward"])]
-    if reach is not None:
-        transforms.append(make_layer(cfg, reach))
+    if models is not None:
+        transforms.append(make_layer(cfg, models))
     return TransformedEnv(make_base_env(cfg.task, seed, layout=layout), Compose(*transforms))
 
 
@@ -86,14 +86,14 @@ def regime_policy(task: DictConfig, max_speed: float):
     """
     info = envs.safety_info(task.name)
     low, high = info.action_low, info.action_high
+    uniform = uniform_policy(low, high)
 
     def policy(td):
         state = td["state"]
-        action = low + (high - low) * torch.rand_like(low)
         if state[list(info.velocity_dims)].norm() > max_speed:
-            action = info.braking_policy(state.double()).float().clamp(low, high)
-        td["action"] = action
-        return td
+            td["action"] = info.braking_policy(state.double()).float().clamp(low, high)
+            return td
+        return uniform(td)
 
     return policy
 
@@ -102,14 +102,16 @@ def local_domain(task: DictConfig) -> tuple[torch.Tensor, torch.Tensor]:
     """``(low, high)`` ``[n + m]`` of ``task.local`` (``null`` bounds: unbounded)."""
     info = envs.safety_info(task.name)
     bounds = []
-    for side, size, default in (("low", info.state_dim, -np.inf), ("high", info.state_dim, np.inf)):
-        state = task.local.get(f"state_{side}") or [default] * size
+    for side, default in (("low", -np.inf), ("high", np.inf)):
+        state = task.local.get(f"state_{side}") or [default] * info.state_dim
         action = task.local.get(f"action_{side}") or [default] * info.action_dim
         bounds.append(torch.tensor([float(v) for v in [*state, *action]], dtype=torch.float64))
     return bounds[0], bounds[1]
 
 
-def _uniform_policy(low: torch.Tensor, high: torch.Tensor):
+def uniform_policy(low: torch.Tensor, high: torch.Tensor):
+    """Actions drawn uniformly from ``[low, high]`` (offline data collection)."""
+
     def policy(td):
         td["action"] = low + (high - low) * torch.rand_like(low)
         return td
@@ -134,7 +136,7 @@ def offline_data(task: DictConfig, cache_dir: str | Path, seed: int = 0, local: 
     if local:
         info = envs.safety_info(task.name)
         low, high = local_domain(task)
-        policy = _uniform_policy(torch.maximum(info.action_low, low[info.state_dim:].float()),
+        policy = uniform_policy(torch.maximum(info.action_low, low[info.state_dim:].float()),
                                  torch.minimum(info.action_high, high[info.state_dim:].float()))
     else:
         max_speed = task.offline.get("max_speed")
@@ -254,13 +256,13 @@ def load_run(run_dir: str | Path):
     """``(cfg, actor, models)`` of a trained run (``models`` is None for methods without the layer)."""
     run_dir = Path(run_dir)
     cfg = OmegaConf.load(run_dir / "config.yaml")
-    reach = SafetyModels.load(run_dir) if cfg.method.layer else None
-    env = make_env(cfg, seed=0, reach=reach)
+    models = SafetyModels.load(run_dir) if cfg.method.layer else None
+    env = make_env(cfg, seed=0, models=models)
     actor = make_actor(env, cfg.hidden)
     state = torch.load(run_dir / "checkpoint.pt", map_location="cpu", weights_only=False)
     actor.load_state_dict(state["actor"])
     env.close()
-    return cfg, actor, reach
+    return cfg, actor, models
 
 
 def load_config(task_dir: str | Path, method: str) -> DictConfig:

@@ -33,7 +33,7 @@ ROWS = {
 }
 
 
-def run_episodes(cfg, actor, reach, episodes: int | None = None, seed: int = 10_000, video_path=None) -> dict:
+def run_episodes(cfg, actor, models, episodes: int | None = None, seed: int = 10_000, video_path=None) -> dict:
     """One deterministic episode per evaluation layout; returns the table's metrics.
 
     Collision rate: share of episodes with at least one contact; ``contact_steps`` adds the share
@@ -45,7 +45,7 @@ def run_episodes(cfg, actor, reach, episodes: int | None = None, seed: int = 10_
     interventions, failsafes, holds = [], [], []
     frames = []
     for layout in range(n):
-        env = common.make_env(cfg, seed=seed + layout, reach=reach, layout=layout)
+        env = common.make_env(cfg, seed=seed + layout, models=models, layout=layout)
         td = env.reset()
         reward, goal, hit = 0.0, False, False
         while True:
@@ -55,9 +55,9 @@ def run_episodes(cfg, actor, reach, episodes: int | None = None, seed: int = 10_
             policy_time = time.perf_counter() - start
             td = env.step(td)
             nxt = td["next"]
-            layer_time = nxt["brsl", "compute_time"].item() if reach is not None else 0.0
+            layer_time = nxt["brsl", "compute_time"].item() if models is not None else 0.0
             times.append(1e3 * (policy_time + layer_time))
-            if reach is not None:
+            if models is not None:
                 interventions.append(nxt["brsl", "intervened"].item())
                 failsafes.append(nxt["brsl", "failsafe"].item())
                 holds.append(nxt["brsl", "unverified_hold"].item())
@@ -183,9 +183,9 @@ def plot_rewards(task_dir: str | Path, path: str | Path | None = None) -> Path |
 def evaluate_run(run_dir: str | Path, episodes: int | None = None, video: bool = False) -> dict:
     """Evaluates one run, writes ``eval.csv``/``eval.md`` into it and returns its metrics."""
     run_dir = Path(run_dir)
-    cfg, actor, reach = common.load_run(run_dir)
+    cfg, actor, models = common.load_run(run_dir)
     common.threads(cfg.threads)
-    result = run_episodes(cfg, actor, reach, episodes, video_path=run_dir / "episode.gif" if video else None)
+    result = run_episodes(cfg, actor, models, episodes, video_path=run_dir / "episode.gif" if video else None)
     write_results([result], run_dir, "eval", common.task_kind(cfg.task))
     return result
 

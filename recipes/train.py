@@ -47,16 +47,16 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:
     common.seed_everything(cfg.seed + frames)
 
     # --- the safety layer's reachability models: random-input steps in the empty task, fitted once
-    reach = None
+    models = None
     if cfg.method.layer:
         if (run_dir / "reach.pt").exists() and ckpt is not None:
-            reach = common.SafetyModels.load(run_dir)
+            models = common.SafetyModels.load(run_dir)
         else:
-            reach = common.SafetyModels.fit(cfg, cfg.cache_dir)
-            reach.save(run_dir)
+            models = common.SafetyModels.fit(cfg, cfg.cache_dir)
+            models.save(run_dir)
 
     # --- env, actor, critics, exploration, (planner)
-    env = common.make_env(cfg, cfg.seed + frames, reach)
+    env = common.make_env(cfg, cfg.seed + frames, models)
     actor = common.make_actor(env, cfg.hidden)
     qvalue = common.make_qvalue(env, cfg.hidden)
     spec = env.full_action_spec["action"]
@@ -113,7 +113,7 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:
     collector_kwargs = {}
     if cfg.num_collectors > 1 or cfg.collector_backend:
         env.close()
-        env = _EnvFactory(cfg, cfg.seed + frames, reach)
+        env = _EnvFactory(cfg, cfg.seed + frames, models)
         collector_kwargs = {"num_collectors": cfg.num_collectors, "backend": cfg.collector_backend}
     collector = Collector(env, policy, frames_per_batch=cfg.frames_per_batch, total_frames=remaining,
                           init_random_frames=max(0, cfg.init_random_frames - frames),
@@ -213,11 +213,11 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:
 class _EnvFactory:
     """Picklable env constructor for collector processes."""
 
-    def __init__(self, cfg, seed, reach):
-        self.cfg, self.seed, self.reach = cfg, seed, reach
+    def __init__(self, cfg, seed, models):
+        self.cfg, self.seed, self.models = cfg, seed, models
 
     def __call__(self):
-        return common.make_env(self.cfg, self.seed, self.reach)
+        return common.make_env(self.cfg, self.seed, self.models)
 
 
 @hydra.main(config_path="config", config_name="train", version_base=None)

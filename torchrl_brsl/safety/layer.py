@@ -392,7 +392,6 @@ class BRSLSafetyLayer(Transform):
             usable, actions = usable.clone(), actions.clone()
             usable[idx] = braked.safe
             if is_local:
-                local = local.clone()
                 local[idx] = braked.safe
             actions[idx] = torch.where(braked.safe.view(-1, 1, 1), braked.actions, actions[idx])
         # Beyond the verified part of the safe plan only the failsafe remains: apply the braking
