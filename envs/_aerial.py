@@ -97,7 +97,7 @@ class AerialTask(GoalTask):
         physics.data.ctrl[:] = action
 
     def _add_state_noise(self, physics, noise) -> None:
-        physics.data.qvel[:3] += noise[3:]
+        physics.data.qvel[:3] += noise[3:6]
 
     def position(self, physics):
         return physics.data.qpos[:3].copy()

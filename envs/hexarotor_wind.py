@@ -6,7 +6,16 @@
   random direction, acting as the drag force ``0.5 kg/s * (wind - velocity)`` written
   to ``xfrc_applied`` before every control step (also in the empty variant: offline
   data is collected under wind). The wind is not observed.
-* State ``(x, y, z, vx, vy, vz)``; process noise ``U[-0.02, 0.02]`` m/s per velocity.
+* Flight controller: the velocity loop has integral action, as a real one (PX4,
+  AirSim) has. The servo tracks ``command + offset``, and after every control step
+  ``offset += 0.5 * (command - velocity)`` on every axis whose servo force is below
+  its limit (anti-windup; uncapped servos always integrate). In constant wind the zero command
+  therefore stops the robot *and keeps it stopped* (paper Assumption 1); a pure
+  velocity servo would let it drift downwind forever. The offset is part of the
+  state (it is the controller's memory) and starts at 0.
+* State ``(x, y, z, vx, vy, vz, ox, oy, oz)`` (position, velocity, integral
+  offset); process noise ``U[-0.02, 0.02]`` m/s per velocity, added after the
+  offset update.
 * Checkpoints: 10 spheres of radius 1 m, equally spaced on the horizontal circle of
   radius 6 m at height 2.5 m, visited counter-clockwise from ``(6, 0, 2.5)``; the
   robot starts hovering at ``(0, 0, 2.5)``. Obstacles (4 pillars, 4 boxes) are placed
@@ -39,6 +48,7 @@ RING_RADIUS = 6.0
 RING_HEIGHT = 2.5
 MAX_WIND = 3.0
 DRAG = 0.5
+INTEGRAL_GAIN = 0.5
 _N_PILLARS = 4
 _N_BOXES = 4
 
@@ -64,6 +74,7 @@ class HexarotorWind(AerialTask):
 
     Attributes:
         wind: the current episode's wind velocity ``[3]`` (m/s).
+        offset: the flight controller's integral offset ``[3]`` (m/s), added to the command.
 
     Examples:
         >>> env = build_environment(seed=0)
@@ -78,6 +89,8 @@ class HexarotorWind(AerialTask):
     observation_dim = 16 + 3 + 3 + 3 + 1
     obstacle_kinds = ("box",) * N_BOUNDARY + ("cylinder",) * _N_PILLARS + ("box",) * _N_BOXES
     start = np.array([0.0, 0.0, RING_HEIGHT])
+    noise_center = np.zeros(9)
+    noise_generators = np.concatenate([AerialTask.noise_generators, np.zeros((3, 3))])
 
     def _new_layout(self, rng):
         goals = checkpoints()
@@ -103,9 +116,24 @@ class HexarotorWind(AerialTask):
             extent=(-half, half, -half, half),
         )
 
+    def _reset_robot(self, physics, rng) -> None:
+        super()._reset_robot(physics, rng)
+        self.offset = np.zeros(3)
+
     def _apply_action(self, action, physics) -> None:
-        super()._apply_action(action, physics)
+        self._command = action
+        physics.data.ctrl[:] = action + self.offset
         physics.data.xfrc_applied[self._body, :3] = DRAG * (self.wind - physics.data.qvel[:3])
+
+    def after_step(self, physics):  # the controller measures the velocity before the process noise
+        model = physics.model
+        limit = np.where(model.actuator_forcelimited, model.actuator_forcerange[:, 1], np.inf)
+        integrating = np.abs(physics.data.actuator_force) < limit  # anti-windup: not while saturated
+        self.offset = self.offset + integrating * INTEGRAL_GAIN * (self._command - physics.data.qvel[:3])
+        super().after_step(physics)
+
+    def state(self, physics):
+        return np.concatenate([super().state(physics), self.offset])
 
     def _policy_observation(self, physics):
         goals = self.layout.goals
@@ -165,13 +193,12 @@ def build_environment(
 def safety_info() -> SafetyInfo:
     """The :class:`SafetyInfo` of ``hexarotor_wind``.
 
-    The zero command leaves a residual drift of at most
-    ``DRAG * MAX_WIND / (servo gain + DRAG) ≈ 0.04`` m/s, hence the looser tolerance.
+    The zero command stops the robot in any wind: the integral offset cancels the drag.
     """
     return HexarotorWind.safety_info(
         n_brk=10,
         n_plan=11,
         braking_action=np.zeros(3),
         braking_policy=functools.partial(zero_command, action_dim=3),
-        stop_tolerance=0.1,
+        stop_tolerance=0.05,
     )

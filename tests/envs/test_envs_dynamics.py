@@ -106,6 +106,19 @@ def _manual_step(env, action):
     return task.state(physics)
 
 
+def _snapshot(env):
+    """The physics state and the controller memory (``hexarotor_wind``'s integral offset)."""
+    return env.physics.get_state().copy(), getattr(env.task, "offset", None)
+
+
+def _restore(env, snapshot):
+    state, offset = snapshot
+    env.physics.set_state(state)
+    env.physics.forward()
+    if offset is not None:
+        env.task.offset = offset
+
+
 @pytest.mark.parametrize("name", envs.TASKS)
 def test_noise_stays_in_the_noise_zonotope(name):
     """Replay each step from the same physics state without noise: the difference of
@@ -120,16 +133,14 @@ def test_noise_stays_in_the_noise_zonotope(name):
     coefficients = []
     for _ in range(40):
         action = rng.uniform(info.action_low.numpy(), info.action_high.numpy())
-        snapshot = physics.get_state().copy()
+        snapshot = _snapshot(env)
         task.noise_scale = 1.0
         noisy = _manual_step(env, action)
-        after = physics.get_state().copy()
-        physics.set_state(snapshot)
-        physics.forward()
+        after = _snapshot(env)
+        _restore(env, snapshot)
         task.noise_scale = 0.0
         clean = _manual_step(env, action)
-        physics.set_state(after)
-        physics.forward()
+        _restore(env, after)
         z, *_ = np.linalg.lstsq(G, noisy - clean - c, rcond=None)
         np.testing.assert_allclose(G @ z + c, noisy - clean, atol=1e-9)
         coefficients.append(z)
@@ -258,19 +269,25 @@ def test_hexarotor_checkpoints_in_order():
     assert rewards >= 10 * len(goals) - 1.0
 
 
-def test_hexarotor_wind_pushes_a_hovering_robot():
+def test_hexarotor_wind_pushes_a_hovering_robot_until_the_integral_action_holds_it():
+    """Paper Assumption 1 in wind: the zero command stops the robot and keeps it stopped."""
     env = envs.make("hexarotor_wind", seed=0, empty=True, layout=5)
     env.task.noise_scale = 0.0
     td = env.reset()
     wind = env.task.wind
-    place_robot(env, np.array([0.0, 0.0, 2.5]), velocity=np.zeros(3))
-    for _ in range(20):
+    assert np.linalg.norm(wind) > 0.3
+    start = np.array([0.0, 0.0, 2.5])
+    place_robot(env, start, velocity=np.zeros(3))
+    states = []
+    for _ in range(60):
         td, nxt = _step(env, td, [0.0, 0.0, 0.0])
+        states.append(nxt["state"].double().numpy())
         td = env.step_mdp(td)
-    velocity = nxt["state"][3:].double().numpy()
-    if np.linalg.norm(wind) > 0.3:
-        assert velocity @ wind > 0  # drifts downwind
-    assert np.linalg.norm(velocity) <= envs.safety_info("hexarotor_wind").stop_tolerance
+    states = np.array(states)
+    assert (states[0, :3] - start) @ wind > 0  # drifts downwind at first
+    assert states[-1, 6:] @ wind < 0  # the offset ends up pointing upwind, cancelling the drag
+    assert np.abs(states[10:, 3:6]).max() <= envs.safety_info("hexarotor_wind").stop_tolerance
+    assert np.abs(states[-1, :3] - states[20, :3]).max() < 1e-3  # then it holds its position
 
 
 def _uniform_policy(info, generator):
