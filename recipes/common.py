@@ -123,10 +123,12 @@ def offline_data(task: DictConfig, cache_dir: str | Path, seed: int = 0, local: 
     """Random-input transitions in the empty task, cached on disk.
 
     ``task.offline.steps`` of them for the main model, or with ``local``, ``task.local.steps``
-    with inputs drawn inside the local domain's action bounds.
+    with inputs drawn inside the local domain's action bounds. The cache key covers the task
+    config, the state layout, the seed and the model kind.
     """
     options = task.local if local else task.offline
-    spec = {"task": task.name, "env": OmegaConf.to_container(task.env, resolve=True),
+    info = envs.safety_info(task.name)
+    spec = {"task": task.name, "state_dim": info.state_dim, "env": OmegaConf.to_container(task.env, resolve=True),
             "offline": OmegaConf.to_container(options, resolve=True), "seed": seed, "local": local}
     digest = hashlib.sha1(json.dumps(spec, sort_keys=True).encode()).hexdigest()[:10]
     path = Path(cache_dir) / f"{task.name}-{'local-' if local else ''}{digest}"
@@ -134,7 +136,6 @@ def offline_data(task: DictConfig, cache_dir: str | Path, seed: int = 0, local: 
         return load_offline_data(path)
     torch.manual_seed(seed)
     if local:
-        info = envs.safety_info(task.name)
         low, high = local_domain(task)
         policy = uniform_policy(torch.maximum(info.action_low, low[info.state_dim:].float()),
                                  torch.minimum(info.action_high, high[info.state_dim:].float()))

@@ -157,6 +157,13 @@ def test_collector_processes(tmp_path):
     assert out["totals"]["frames"] == 400 and out["totals"]["collisions"] == 0
 
 
+def test_ray_collectors(tmp_path):
+    pytest.importorskip("ray", reason="the Ray backend needs `pip install .[ray]`")
+    out = train(config(tmp_path, "point_boxes", "brsl", 400, "num_collectors=2", "collector_backend=ray"),
+                run_dir(tmp_path, "point_boxes", "brsl"))
+    assert out["totals"]["frames"] == 400 and out["totals"]["collisions"] == 0
+
+
 def test_demo_trains_both_methods_and_prints_the_table(tmp_path, capsys):
     from recipes.demo import main as demo_main
 
