@@ -110,8 +110,9 @@ def _write_gif(frames, path) -> None:
 
 
 def cell(result: dict, key: str) -> str:
-    """One table cell in the paper's format (``–`` for a metric the run's evaluation lacks)."""
-    if key not in result and key not in ("speed", "compute_time"):
+    """One table cell in the paper's format (``–`` for a metric the run lacks or that does not
+    apply to it, such as interventions without a safety layer)."""
+    if key not in ("speed", "compute_time") and np.isnan(result.get(key, np.nan)):
         return "–"
     if key == "speed":
         return f"{result['mean_speed']:.2f} / {result['max_speed']:.2f}"
