@@ -110,21 +110,21 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:
     if remaining <= 0:
         env.close()
         return {"totals": totals, "metrics": {}}
-    collector_kwargs = {}
-    if cfg.num_collectors > 1 or cfg.collector_backend:
+    remote = cfg.num_collectors > 1 or bool(cfg.collector_backend)
+    no_registration = {"auto_register_policy_transforms": False}  # the layer belongs to the env, not the policy
+    collector_kwargs = dict(no_registration)
+    if remote:
         env.close()
         env = _EnvFactory(cfg, cfg.seed + frames, models)
         collector_kwargs = {"num_collectors": cfg.num_collectors, "backend": cfg.collector_backend}
-    # the layer is part of the env, not of the policy. Ray passes that on to its remote collectors
-    # and syncs weights between batches (its weight sync cannot reach an actor busy collecting)
-    no_registration = {"auto_register_policy_transforms": False}
-    if cfg.collector_backend == "ray":
-        collector_kwargs.update(collector_kwargs=no_registration, sync=True)
-    else:
-        collector_kwargs.update(no_registration)
+        if cfg.collector_backend == "ray":  # passed on to the remote collectors; weights synced between
+            # batches (Ray's weight sync cannot reach an actor that is busy collecting)
+            collector_kwargs.update(collector_kwargs=no_registration, sync=True)
+        else:
+            collector_kwargs.update(no_registration)
     collector = Collector(env, policy, frames_per_batch=cfg.frames_per_batch, total_frames=remaining,
                           init_random_frames=max(0, cfg.init_random_frames - frames), **collector_kwargs)
-    if collector_kwargs:  # distinct seeds per collector process (the single local env is seeded already)
+    if remote:  # distinct seeds per collector process (the single local env is seeded already)
         collector.set_seed(cfg.seed + frames)
         collector.update_policy_weights_()
     logger = get_logger(cfg.logger.backend, logger_name=str(run_dir / "logs"), experiment_name="train",
