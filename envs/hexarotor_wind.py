@@ -125,10 +125,13 @@ class HexarotorWind(AerialTask):
         physics.data.ctrl[:] = action + self.offset
         physics.data.xfrc_applied[self._body, :3] = DRAG * (self.wind - physics.data.qvel[:3])
 
-    def after_step(self, physics):  # the controller measures the velocity before the process noise
+    def _bind(self, physics) -> None:
+        super()._bind(physics)
         model = physics.model
-        limit = np.where(model.actuator_forcelimited, model.actuator_forcerange[:, 1], np.inf)
-        integrating = np.abs(physics.data.actuator_force) < limit  # anti-windup: not while saturated
+        self._force_limit = np.where(model.actuator_forcelimited, model.actuator_forcerange[:, 1], np.inf)
+
+    def after_step(self, physics):  # the controller measures the velocity before the process noise
+        integrating = np.abs(physics.data.actuator_force) < self._force_limit  # anti-windup: not while saturated
         self.offset = self.offset + integrating * INTEGRAL_GAIN * (self._command - physics.data.qvel[:3])
         super().after_step(physics)
 

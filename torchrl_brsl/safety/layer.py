@@ -325,11 +325,11 @@ class BRSLSafetyLayer(Transform):
 
         with torch.no_grad():
             evaluation = checker.evaluate(x0, plan, obstacle_centers, obstacle_generators, obstacle_mask)
-        proposal_safe = evaluation.safe if valid is None else evaluation.safe & valid
+        proposal_safe = _and_valid(evaluation.safe, valid)
         accepted = proposal_safe
         actions, values = evaluation.actions, evaluation.values
         iterations = torch.zeros(n_envs, dtype=torch.long, device=state.device)
-        todo = ~proposal_safe if valid is None else valid & ~proposal_safe
+        todo = _and_valid(~proposal_safe, valid)
         if self.adjuster is not None and bool(todo.any()):
             reference = safe_plan.to(dtype)
             if bool(todo.all()):  # e.g. a single env: no gathering and scattering
@@ -352,7 +352,7 @@ class BRSLSafetyLayer(Transform):
                 iterations[idx] = adjusted.iterations
 
         local = torch.zeros_like(accepted)
-        retry = ~accepted if valid is None else valid & ~accepted
+        retry = _and_valid(~accepted, valid)
         if self.local_reach is not None and bool(retry.any()):
             idx = retry.nonzero().squeeze(-1)
             sub = self._local_subset(idx, obstacle_generators, retry)
@@ -376,7 +376,7 @@ class BRSLSafetyLayer(Transform):
         # open loop would drift past the verified horizon.
         usable = accepted
         for is_local in (False, True) if self.local_reach is not None else (False,):
-            braking = ~usable if valid is None else valid & ~usable
+            braking = _and_valid(~usable, valid)
             if not bool(braking.any()):
                 break
             idx = braking.nonzero().squeeze(-1)
@@ -445,3 +445,8 @@ class BRSLSafetyLayer(Transform):
         if name == "generators" and value.shape[-2] != d:
             raise ValueError(f"`{key}` must be [..., K, {d}, p], got {tuple(value.shape)}")
         return value
+
+
+def _and_valid(mask: Tensor, valid: Tensor | None) -> Tensor:
+    """``mask`` restricted to the envs with valid inputs (``valid`` None: all are valid)."""
+    return mask if valid is None else valid & mask
