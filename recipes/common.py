@@ -194,18 +194,17 @@ def horizon(cfg: DictConfig) -> tuple[int, int]:
 
 
 def make_layer(cfg: DictConfig, models: SafetyModels) -> BRSLSafetyLayer:
-    """The safety layer with the task's SafetyInfo; stop tolerance = final set radius + slack."""
+    """The safety layer with the task's SafetyInfo; stopped = final centre within the slack of rest."""
     info = envs.safety_info(cfg.task.name)
     reach = models.reach
     n_plan, n_brk = horizon(cfg)
-    radius = reach.error_generators_sequence(n_plan + n_brk)[-1, list(info.velocity_dims)].abs().sum(-1)
     braking = info.braking_policy if cfg.task.safety.braking == "policy" else None
     adjusters = {"facet_qp": FacetQPAdjuster, "gradient": GradientAdjuster, "none": lambda: None}
     if cfg.method.adjuster not in adjusters:
         raise ValueError(f"unknown adjuster {cfg.method.adjuster!r}; choose one of {list(adjusters)}")
     return BRSLSafetyLayer(
         reach, Failsafe(info.braking_action, n_brk, policy=braking), n_plan, stop_dims=info.velocity_dims,
-        stop_tolerance=(radius + cfg.method.stop_slack).tolist(), action_low=info.action_low,
+        stop_slack=cfg.method.stop_slack, action_low=info.action_low,
         action_high=info.action_high, adjuster=adjusters[cfg.method.adjuster](), penalty=cfg.method.penalty,
         local_reach=models.local)
 

@@ -12,6 +12,8 @@ SYSTEMS = {"double_integrator": DoubleIntegrator, "unicycle": Unicycle}
 
 
 def fit(system, num=500, seed=0, **kwargs):
+    """The global model: this file tests its one-fit form (the local default is in test_cells.py)."""
+    kwargs.setdefault("method", "global")
     gen = torch.Generator().manual_seed(seed)
     x, xp, u = system.offline_data(num, gen)
     return DataDrivenReach.fit(x, xp, u, system.noise,

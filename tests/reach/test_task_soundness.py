@@ -12,7 +12,8 @@ CASES = {
     "diffdrive_nav": ({"max_acceleration": None, "max_turn_acceleration": None}, 2000, 4, 0.1),
     "point_boxes": ({"max_acceleration": None}, 500, 4, 0.1),
     "quadrotor_nav": ({"max_acceleration": None}, 500, 11, 0.1),
-    "hexarotor_wind": ({"max_acceleration": None}, 500, 11, 0.25),  # a new wind every episode
+    # a new wind every episode; the local model's radius is 0.31 m here (the global fit's 0.24 m)
+    "hexarotor_wind": ({"max_acceleration": None}, 500, 11, 0.35),
 }
 
 

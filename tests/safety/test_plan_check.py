@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from torchrl_brsl.collision import collision_value
+from torchrl_brsl.collision import collision_value, intersects
 from torchrl_brsl.reach import DataDrivenReach, DoubleIntegrator
 from torchrl_brsl.safety import FacetQPAdjuster, Failsafe, GradientAdjuster, PlanChecker
 from torchrl_brsl.sets import Zonotope
@@ -17,7 +17,35 @@ def system():
 @pytest.fixture(scope="module")
 def reach(system):
     x, xp, u = system.offline_data(500, torch.Generator().manual_seed(0))
+    return DataDrivenReach.fit(x, xp, u, system.noise, translation_invariant_dims=(0, 1), max_generators=24,
+                               method="global")  # these tests compare against its matrices
+
+
+@pytest.fixture(scope="module")
+def local_reach(system):
+    x, xp, u = system.offline_data(2000, torch.Generator().manual_seed(0))
     return DataDrivenReach.fit(x, xp, u, system.noise, translation_invariant_dims=(0, 1), max_generators=24)
+
+
+@pytest.mark.parametrize("policy", [False, True])
+def test_local_model_verdict_matches_its_explicit_sets(local_reach, system, policy):
+    """With plan-dependent sets, a plan is safe only if its sets (plan + braking tail,
+    recomputed step by step) are covered, miss the obstacle and end stopped (the checker's
+    reduced projections can only be more cautious)."""
+    checker = make_checker(local_reach, system, policy=policy, stop_tolerance=None, stop_slack=0.1)
+    gen = torch.Generator().manual_seed(3)
+    x0 = torch.zeros(16, 4, dtype=torch.float64)
+    x0[:, 2:] = torch.rand(16, 2, generator=gen, dtype=torch.float64) * 0.6 - 0.3
+    plan = system.sample_actions(16, N_PLAN, generator=gen) * 0.5
+    c, g, mask, obstacle = box([0.25, -1.0], [0.6, 1.0])
+    evaluation = checker.evaluate(x0, plan, c.expand(16, 1, 2), g.expand(16, 1, 2, 2), mask.expand(16, 1))
+    sets, covered = local_reach.reach_covered(Zonotope.from_point(x0), evaluation.actions)
+    torch.testing.assert_close(sets.center, evaluation.centers)
+    hit = intersects(sets.project([0, 1]), obstacle).any(-1)
+    stopped = ((sets.center[:, -1, 2:].abs() <= 0.1)).all(-1)
+    assert not (evaluation.safe & (hit | ~covered | ~stopped)).any()
+    assert torch.equal(evaluation.covered, covered)
+    assert evaluation.safe.any() and hit.any()
 
 
 def make_checker(reach, system, policy=True, **kwargs):

@@ -1,8 +1,13 @@
 """Data-driven reachability analysis of black-box systems."""
-from torchrl_brsl.reach.data_driven import DataDrivenReach
-from torchrl_brsl.reach.examples import BlackBoxSystem, DoubleIntegrator, Unicycle
+from torchrl_brsl.reach.cells import Cells, fit_cells, input_relevance, select_cells
+from torchrl_brsl.reach.data_driven import METHODS, DataDrivenReach
+from torchrl_brsl.reach.evaluation import SampledReach, points_outside, sample_reach
+from torchrl_brsl.reach.examples import (BlackBoxSystem, DoubleIntegrator, KinematicBicycle, SaturatedThrustPoint,
+                                        Unicycle)
 from torchrl_brsl.reach.lipschitz import covering_radius, residual_lipschitz
 from torchrl_brsl.reach.offline import collect_offline_data, load_offline_data, save_offline_data
 
-__all__ = ["BlackBoxSystem", "DataDrivenReach", "DoubleIntegrator", "Unicycle", "collect_offline_data", "covering_radius", "load_offline_data",
-           "residual_lipschitz", "save_offline_data"]
+__all__ = ["METHODS", "BlackBoxSystem", "Cells", "DataDrivenReach", "DoubleIntegrator", "KinematicBicycle",
+           "SampledReach", "SaturatedThrustPoint", "Unicycle", "collect_offline_data", "covering_radius", "fit_cells",
+           "input_relevance", "load_offline_data", "points_outside", "residual_lipschitz", "sample_reach",
+           "save_offline_data", "select_cells"]

@@ -121,5 +121,63 @@ class Unicycle(BlackBoxSystem):
         return torch.stack(((-x[..., 3] / self.dt).clamp(-1.0, 1.0), torch.zeros_like(x[..., 3])), dim=-1)
 
 
+class KinematicBicycle(BlackBoxSystem):
+    """Kinematic bicycle with quadratic drag, heading over the full circle.
+
+    State ``(x, y, theta, v)``, action ``(acceleration, steering angle)`` in
+    ``[-1, 1] x [-0.5, 0.5]``, ``dt = 0.1``, wheelbase ``0.3``:
+    ``theta+ = theta + dt v tan(steer) / wheelbase``,
+    ``v+ = clip(v + dt (a - drag v |v|), 0, max_speed)``, positions advance with the old
+    heading and speed. The data region spans ``theta in [-pi, pi]``.
+    """
+
+    def __init__(self, drag: float = 0.5, max_speed: float = 1.5, wheelbase: float = 0.3):
+        d = torch.float64
+        super().__init__(dt=0.1, state_low=torch.tensor([-2.0, -2.0, -math.pi, 0.0], dtype=d),
+                         state_high=torch.tensor([2.0, 2.0, math.pi, max_speed], dtype=d),
+                         action_low=torch.tensor([-1.0, -0.5], dtype=d), action_high=torch.tensor([1.0, 0.5], dtype=d),
+                         noise_half_width=torch.tensor([0.002, 0.002, 0.004, 0.01], dtype=d),
+                         translation_invariant_dims=(0, 1))
+        self.drag, self.max_speed, self.wheelbase = drag, max_speed, wheelbase
+
+    def dynamics(self, x: Tensor, u: Tensor) -> Tensor:
+        theta, v = x[..., 2], x[..., 3]
+        a, steer = u[..., 0].clamp(-1.0, 1.0), u[..., 1].clamp(-0.5, 0.5)
+        return torch.stack((x[..., 0] + self.dt * v * torch.cos(theta), x[..., 1] + self.dt * v * torch.sin(theta),
+                            theta + self.dt * v * torch.tan(steer) / self.wheelbase,
+                            (v + self.dt * (a - self.drag * v * v.abs())).clamp(0.0, self.max_speed)), dim=-1)
+
+    def braking(self, x: Tensor) -> Tensor:
+        """Full deceleration, wheels straight."""
+        return torch.stack(((-x[..., 3] / self.dt).clamp(-1.0, 1.0), torch.zeros_like(x[..., 3])), dim=-1)
+
+
+class SaturatedThrustPoint(BlackBoxSystem):
+    """Planar point with tanh-saturated thrust and quadratic drag.
+
+    State ``(x, y, vx, vy)``, action ``(ux, uy)`` in ``[-1, 1]^2``, ``dt = 0.1``:
+    ``v+ = v + dt (a_max tanh(gain u) - drag v |v|)``, ``p+ = p + dt v+``.
+    """
+
+    def __init__(self, max_thrust: float = 2.0, gain: float = 2.0, drag: float = 0.5, max_speed: float = 2.0):
+        d = torch.float64
+        super().__init__(dt=0.1, state_low=torch.tensor([-2.0, -2.0, -max_speed, -max_speed], dtype=d),
+                         state_high=torch.tensor([2.0, 2.0, max_speed, max_speed], dtype=d),
+                         action_low=-torch.ones(2, dtype=d), action_high=torch.ones(2, dtype=d),
+                         noise_half_width=torch.tensor([0.002, 0.002, 0.01, 0.01], dtype=d),
+                         translation_invariant_dims=(0, 1))
+        self.max_thrust, self.gain, self.drag = max_thrust, gain, drag
+
+    def dynamics(self, x: Tensor, u: Tensor) -> Tensor:
+        p, v = x[..., :2], x[..., 2:]
+        a = self.max_thrust * torch.tanh(self.gain * u.clamp(-1.0, 1.0)) - self.drag * v * v.abs()
+        v_next = v + self.dt * a
+        return torch.cat((p + self.dt * v_next, v_next), dim=-1)
+
+    def braking(self, x: Tensor) -> Tensor:
+        """Thrust against the velocity, as hard as the saturation allows."""
+        return (-x[..., 2:]).clamp(-1.0, 1.0)
+
+
 def _uniform(low: Tensor, high: Tensor, num: int, generator: torch.Generator | None) -> Tensor:
     return low + (high - low) * torch.rand(num, low.shape[-1], generator=generator, dtype=low.dtype)

@@ -133,7 +133,7 @@ class GradientAdjuster:
             if checker.stop_dims:
                 final = _stop_centres(checker, evaluation.centers)  # [B, s]
                 excess = evaluation.stop_excess.unsqueeze(-1)
-                attains = (final.abs() - checker._stop_room) == excess  # amax: shared equally between ties
+                attains = (final.abs() - evaluation.stop_room) == excess  # amax: shared equally between ties
                 share = attains * (final.sign() * (excess > 0)) / attains.sum(-1, keepdim=True).clamp_min(1)
                 grad = grad.addmm_(share, affine.stop_jacobian)
             plan = self._step(plan, grad.view_as(plan), active, low, high, scale)
@@ -205,7 +205,7 @@ class FacetQPAdjuster:
                              float("inf")).flatten(1)  # masked pairs: never a constraint
         if checker.stop_dims:
             stop_ref = _stop_centres(checker, ref_eval.centers)
-            room = checker._stop_room * (1 - 1e-9)  # not exactly on the boundary, where rounding decides
+            room = ref_eval.stop_room * (1 - 1e-9)  # not exactly on the boundary, where rounding decides
             stop_jac = stop_jac.expand(n_envs, *stop_jac.shape[-2:])
             rows = torch.cat((rows, stop_jac, -stop_jac), dim=1)
             bounds = torch.cat((bounds, room - stop_ref, room + stop_ref), dim=1)

@@ -78,6 +78,8 @@ class BRSLSafetyLayer(Transform):
         stop_dims: state dims that must be ~0 when stopped (velocities).
         stop_tolerance: bound on ``|stop_dims|`` over the final reachable set (a float or one
             value per stop dim; see :class:`PlanChecker`).
+        stop_slack: instead of ``stop_tolerance``: ``|final centre| <= stop_slack`` on the stop
+            dims, the tolerance being the final set's own radius plus the slack.
         action_low, action_high: ``[m]`` action bounds (default: the parent's action spec).
         position_dims: state dims of the obstacle space (default: the model's
             translation-invariant dims).
@@ -102,7 +104,8 @@ class BRSLSafetyLayer(Transform):
     """
 
     def __init__(self, reach: DataDrivenReach, failsafe: Failsafe, n_plan: int, *, stop_dims: Sequence[int],
-                 stop_tolerance: float | Sequence[float], action_low: Tensor | None = None,
+                 stop_tolerance: float | Sequence[float] | None = None,
+                 stop_slack: float | Sequence[float] | None = None, action_low: Tensor | None = None,
                  action_high: Tensor | None = None, position_dims: Sequence[int] | None = None,
                  adjuster: str | Callable | None = "gradient", penalty: float = 0.0,
                  set_generators: int | None = None, margin: float = 1e-6,
@@ -132,7 +135,7 @@ class BRSLSafetyLayer(Transform):
         self.n_plan = int(n_plan)
         self.horizon = self.n_plan + int(failsafe.n_brk)
         self.stop_dims = list(stop_dims)
-        self.stop_tolerance = stop_tolerance
+        self.stop_tolerance, self.stop_slack = stop_tolerance, stop_slack
         self.position_dims = position_dims
         if isinstance(adjuster, str):
             if adjuster not in ADJUSTERS:
@@ -183,7 +186,7 @@ class BRSLSafetyLayer(Transform):
 
     def _plan_checker(self, reach: DataDrivenReach, low: Tensor, high: Tensor) -> PlanChecker:
         return PlanChecker(reach, self.failsafe, self.horizon, stop_dims=self.stop_dims,
-                           stop_tolerance=self.stop_tolerance, action_low=low, action_high=high,
+                           stop_tolerance=self.stop_tolerance, stop_slack=self.stop_slack, action_low=low, action_high=high,
                            position_dims=self.position_dims, set_generators=self.set_generators,
                            margin=self.margin, action_dtype=self._action_dtype())
 

@@ -10,7 +10,8 @@ from torch import Tensor
 from torchrl_brsl.collision import ZonotopeCollisionChecker
 from torchrl_brsl.reach import DataDrivenReach
 from torchrl_brsl.safety.failsafe import Failsafe
-from torchrl_brsl.sets import reduce_girard
+from torchrl_brsl.sets import Zonotope, pad_generators, reduce_girard
+from torchrl_brsl.sets._checks import skip_value_checks
 
 
 class PlanEvaluation(NamedTuple):
@@ -21,8 +22,12 @@ class PlanEvaluation(NamedTuple):
         centers: ``[B, T, n]`` centres of ``R_1 .. R_T``.
         values: ``[B, T, K]`` collision values v* (``inf`` for masked obstacles).
         stop_excess: ``[B]`` how far the final set is from "stopped" (<= 0 means stopped).
-        safe: ``[B]`` every set collision-free (``v* > 1 + margin``), the final set stopped and,
-            for a model of a restricted domain, every step inside it.
+        safe: ``[B]`` every set collision-free (``v* > 1 + margin``), the final set stopped and
+            every step inside the model's data (its domain, or its cells for a local model).
+        stop_room: ``[B, s]`` the final centre is "stopped" when ``|centre| <= stop_room`` on
+            the stop dims (the tolerance minus the final set's radius there).
+        covered: ``[B]`` every step lies where the model's data make a claim (``False`` is
+            flagged ``out_of_data`` by the layer).
     """
 
     actions: Tensor
@@ -30,15 +35,18 @@ class PlanEvaluation(NamedTuple):
     values: Tensor
     stop_excess: Tensor
     safe: Tensor
+    stop_room: Tensor
+    covered: Tensor
 
 
 class PlanChecker:
     """Verifies plans: reachable sets of plan + braking tail against obstacles, and a final stop.
 
-    The generators of every reachable set from a measured state do not depend on the plan
-    (see :class:`DataDrivenReach`), so their projections onto the obstacle space are reduced
-    once here, and the facet table of each (set, obstacle) pair is rebuilt only when the
-    obstacles change. With open-loop braking (no braking policy) the centres of all ``T``
+    For a global model (``DataDrivenReach.fit(method="global")``) the generators of every
+    reachable set from a measured state do not depend on the plan, so their projections onto
+    the obstacle space are reduced once here, and the facet table of each (set, obstacle)
+    pair is rebuilt only when the obstacles change. For a local model (the default) the sets
+    are computed per plan and the facet table is built per check. With open-loop braking (no braking policy) the centres of all ``T``
     sets are one affine map of the measured state and the plan, precomputed per plan length,
     so a check costs one product for the centres and one for the collision values.
 
@@ -50,8 +58,12 @@ class PlanChecker:
             translation-invariant dims).
         stop_dims: state dims that must be ~0 when stopped (velocities).
         stop_tolerance: the final set's interval on ``stop_dims`` must lie in
-            ``[-stop_tolerance, stop_tolerance]`` (a float, or one value per stop dim). It must
-            exceed the final set's own radius on those dims, which the error message reports.
+            ``[-stop_tolerance, stop_tolerance]`` (a float, or one value per stop dim). For a
+            global model it must exceed the final set's own radius on those dims, which the
+            error message reports.
+        stop_slack: instead of ``stop_tolerance``: the final set's interval must lie within
+            ``stop_slack`` of its own radius around rest, i.e. ``|final centre| <= stop_slack``
+            on the stop dims (the tolerance is the set's radius plus the slack, per plan).
         set_generators: width of the projected sets after Girard reduction
             (default ``4 d``).
         margin: a set counts as colliding when ``v* <= 1 + margin``.
@@ -61,7 +73,8 @@ class PlanChecker:
     """
 
     def __init__(self, reach: DataDrivenReach, failsafe: Failsafe, horizon: int, *, stop_dims: Sequence[int],
-                 stop_tolerance: float | Sequence[float] | Tensor, action_low: Tensor, action_high: Tensor,
+                 action_low: Tensor, action_high: Tensor, stop_tolerance: float | Sequence[float] | Tensor | None = None,
+                 stop_slack: float | Sequence[float] | Tensor | None = None,
                  position_dims: Sequence[int] | None = None, set_generators: int | None = None,
                  margin: float = 1e-6, action_dtype: torch.dtype = torch.float64):
         self.reach = reach
@@ -79,9 +92,17 @@ class PlanChecker:
         errors = reach.error_generators_sequence(self.horizon)  # [T, n, p]
         d = len(self.position_dims)
         self.set_generators = reduce_girard(errors[:, self.position_dims], set_generators or 4 * d)  # [T, d, ps]
-        self.stop_radius = errors[-1, self.stop_dims].abs().sum(-1)  # [len(stop_dims)]
+        self.plan_dependent = reach.plan_dependent
+        self.set_width = set_generators or 4 * d
+        self.stop_radius = errors[-1, self.stop_dims].abs().sum(-1)  # [len(stop_dims)], global model
+        if (stop_tolerance is None) == (stop_slack is None):
+            raise ValueError("give exactly one of `stop_tolerance` and `stop_slack`")
+        self.stop_slack = None if stop_slack is None else torch.as_tensor(stop_slack, dtype=dtype).expand(
+            len(self.stop_dims))
+        if stop_tolerance is None:
+            stop_tolerance = self.stop_radius + self.stop_slack
         self.stop_tolerance = torch.as_tensor(stop_tolerance, dtype=dtype).expand(len(self.stop_dims))
-        if self.stop_dims and bool((self.stop_radius >= self.stop_tolerance).any()):
+        if not self.plan_dependent and self.stop_dims and bool((self.stop_radius >= self.stop_tolerance).any()):
             raise ValueError(
                 f"`stop_tolerance`={self.stop_tolerance.tolist()} is not above the final reachable set's radius "
                 f"{self.stop_radius.tolist()} on the stop dims: no plan could ever be accepted. Raise the "
@@ -96,7 +117,7 @@ class PlanChecker:
         self._stop_room = self.stop_tolerance - self.stop_radius  # stopped: |final centre| <= room
         # a model of a restricted domain: the boxes of R_0 (a point) .. R_{T-1} must stay in it
         self._domain_radius = (torch.cat((errors.new_zeros(1, errors.shape[1]), errors[:-1].abs().sum(-1)))
-                               if reach.bounded_domain else None)
+                               if reach.bounded_domain and not self.plan_dependent else None)
 
     def checker(self, obstacle_generators: Tensor) -> ZonotopeCollisionChecker:
         """The facet table for ``obstacle_generators`` ``[B, K, d, p]`` (rebuilt on change)."""
@@ -121,7 +142,8 @@ class PlanChecker:
             checker.batch_shape = table.supports.shape[:-1]
             sub._checker = checker
             sub._columns = tuple(c[index] for c in self._columns)
-            sub._obstacle_generators = self._obstacle_generators[index]
+            if self._obstacle_generators is not None:
+                sub._obstacle_generators = self._obstacle_generators[index]
         return sub
 
     def affine(self, plan_steps: int, dtype: torch.dtype | None = None,
@@ -131,7 +153,7 @@ class PlanChecker:
         Exists when the braking is open-loop (no braking policy): then the whole action
         sequence, and hence every centre, is affine in the plan. Cached per plan length.
         """
-        if self.failsafe.policy is not None:
+        if self.failsafe.policy is not None or self.plan_dependent:
             return None
         A = self.reach.state_matrix
         dtype = A.dtype if dtype is None else dtype
@@ -166,7 +188,7 @@ class PlanChecker:
     def _affine_for(self, x0: Tensor, plan: Tensor) -> AffineRollout | None:
         """:meth:`affine` when it applies to this batch: open-loop braking, ``x0`` ``[B, n]`` and
         ``plan`` ``[B, P, m]`` in the model's dtype."""
-        if (self.failsafe.policy is not None or x0.ndim != 2 or plan.ndim != 3
+        if (self.failsafe.policy is not None or self.plan_dependent or x0.ndim != 2 or plan.ndim != 3
                 or plan.dtype != self.reach.state_matrix.dtype):
             return None
         return self.affine(plan.shape[1], plan.dtype, plan.device)
@@ -181,6 +203,9 @@ class PlanChecker:
         Returns:
             ``(actions [B, T, m], centers [B, T, n])``; differentiable w.r.t. ``plan``.
         """
+        if self.plan_dependent:
+            actions, sets, _ = self.rollout_sets(x0, plan)
+            return actions, sets.center
         n_tail = self.horizon - plan.shape[-2]
         if self.failsafe.policy is None:  # open-loop braking: the whole sequence is affine in the plan
             affine = self._affine_for(x0, plan)
@@ -210,6 +235,45 @@ class PlanChecker:
             centers = torch.cat((centers, torch.stack(tail_centers, dim=1)), dim=1)
         return torch.cat(actions, dim=1), centers
 
+    def rollout_sets(self, x0: Tensor, plan: Tensor) -> tuple[Tensor, Zonotope, Tensor]:
+        """Reachable sets of ``plan`` followed by braking up to the horizon (a local model).
+
+        Args:
+            x0: ``[B, n]`` measured states.
+            plan: ``[B, P, m]`` with ``P <= T``.
+
+        Returns:
+            ``(actions [B, T, m], sets [B, T], covered [B])``; differentiable w.r.t. ``plan``.
+        """
+        n_tail = self.horizon - plan.shape[-2]
+        if n_tail < 0:
+            raise ValueError(f"the plan has {plan.shape[-2]} steps, more than the horizon T={self.horizon}")
+        initial = Zonotope.from_point(x0.to(plan.dtype))
+        if self.failsafe.policy is None:
+            actions = torch.cat((plan, self._hold(plan).expand(plan.shape[0], n_tail, -1)), dim=1)
+            sets, covered = self.reach.reach_covered(initial, actions)
+            return actions, sets, covered
+        sets, covered = self.reach.reach_covered(initial, plan)
+        center, generators = sets.center[:, -1], sets.generators[:, -1]
+        centers, gens, actions = list(sets.center.unbind(1)), list(sets.generators.unbind(1)), [plan]
+        for _ in range(n_tail):
+            u = torch.minimum(torch.maximum(self.failsafe.actions(center), self.action_low), self.action_high)
+            u = u.to(self.action_dtype).to(center.dtype)
+            center, generators, inside = self.reach.step_sets(center, generators, u)
+            covered = covered & inside
+            actions.append(u.unsqueeze(1))
+            centers.append(center)
+            gens.append(generators)
+        width = max(g.shape[-1] for g in gens)
+        with skip_value_checks():
+            sets = Zonotope(torch.stack(centers, 1), torch.stack([pad_generators(g, width) for g in gens], 1))
+        return torch.cat(actions, dim=1), sets, covered
+
+    def _hold(self, like: Tensor) -> Tensor:
+        """The open-loop braking action, clipped and rounded to the action dtype: ``[m]``."""
+        hold = torch.minimum(torch.maximum(self.failsafe.hold_action.to(like), self.action_low), self.action_high)
+        return hold.to(self.action_dtype).to(like.dtype)
+
     def evaluate(self, x0: Tensor, plan: Tensor, obstacle_centers: Tensor, obstacle_generators: Tensor,
                  obstacle_mask: Tensor) -> PlanEvaluation:
         """Verify a batch of plans from measured states.
@@ -230,8 +294,17 @@ class PlanChecker:
     def _evaluate(self, x0: Tensor, plan: Tensor, obstacle_centers: Tensor, obstacle_generators: Tensor,
                   obstacle_mask: Tensor, detail: bool = False) -> tuple[PlanEvaluation, Gauge | None]:
         """:meth:`evaluate`, optionally with the signed facet products and the facet attaining each value."""
-        actions, centers = self.rollout(x0, plan)
-        self.checker(obstacle_generators)
+        if self.plan_dependent:
+            actions, sets, covered = self.rollout_sets(x0, plan)
+            centers = sets.center
+            self._plan_checker(sets, obstacle_generators)
+            stop_room = (self.stop_slack.expand(centers.shape[0], -1) if self.stop_slack is not None else
+                         self.stop_tolerance - _take(sets.generators[:, -1].abs().sum(-1), self._stop_index))
+        else:
+            actions, centers = self.rollout(x0, plan)
+            self.checker(obstacle_generators)
+            covered = torch.ones(centers.shape[0], dtype=torch.bool, device=centers.device)
+            stop_room = self._stop_room.to(centers).expand(centers.shape[0], -1)
         positions = _take(centers, self._position_index)  # [B, T, d]
         offsets = obstacle_centers.unsqueeze(-3) - positions.unsqueeze(-2)  # [B, T, K, d]
         parts = offsets.unsqueeze(-1).unbind(-2)  # d x [B, T, K, 1]
@@ -245,19 +318,28 @@ class PlanChecker:
         values = torch.where(obstacle_mask.unsqueeze(-2), torch.nan_to_num(values, nan=0.0, posinf=0.0, neginf=0.0),
                              float("inf"))
         if self.stop_dims:
-            stop_excess = (_take(centers.select(1, -1), self._stop_index).abs() - self._stop_room).amax(-1)
+            stop_excess = (_take(centers.select(1, -1), self._stop_index).abs() - stop_room).amax(-1)
         else:
             stop_excess = centers.new_zeros(centers.shape[0])
         if values.shape[-1] and values.shape[-2]:
             collision_free = values.amin((-1, -2)) > self._threshold
         else:
             collision_free = torch.ones_like(stop_excess, dtype=torch.bool)
-        safe = collision_free & (stop_excess <= 0)
+        safe = collision_free & (stop_excess <= 0) & covered
         if self._domain_radius is not None:
             starts = torch.cat((x0.to(centers).unsqueeze(1), centers[:, :-1]), dim=1)
-            safe = safe & self.reach._boxes_in_domain(starts, self._domain_radius.to(centers), actions)
-        evaluation = PlanEvaluation(actions, centers, values, stop_excess, safe)
+            inside = self.reach._boxes_in_domain(starts, self._domain_radius.to(centers), actions)
+            safe, covered = safe & inside, covered & inside
+        evaluation = PlanEvaluation(actions, centers, values, stop_excess, safe, stop_room, covered)
         return evaluation, (Gauge(products, best) if detail else None)
+
+    def _plan_checker(self, sets: Zonotope, obstacle_generators: Tensor) -> None:
+        """Facet table of plan-dependent sets ``[B, T]`` against the obstacles ``[B, K, d, p]``."""
+        projected = reduce_girard(_take(sets.generators.transpose(-1, -2), self._position_index).transpose(-1, -2),
+                                  self.set_width)  # [B, T, d, ps]
+        self._checker = ZonotopeCollisionChecker(projected.unsqueeze(-3), obstacle_generators.unsqueeze(-4))
+        self._columns = tuple(w.contiguous() for w in self._checker.table.weights.unbind(-1))
+        self._obstacle_generators = None  # the cached table no longer matches any obstacle batch
 
     def facet_weights(self) -> Tensor:
         """The cached facet table's ``weights`` ``[B, T, K, F, d]`` (see :meth:`checker`)."""

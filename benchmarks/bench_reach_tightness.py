@@ -1,0 +1,74 @@
+"""Tightness, soundness and speed of the local (default) and the global reachability model, side by side.
+
+For each example black box and offline budget (500 and 2,000 random transitions): 20 random
+plans of 10 steps from random starts of the data region, 300 sampled true trajectories
+each. Printed per model: the sets' interval width over the samples' spread (geometric mean
+over state dims, median over steps and plans the model claims), sampled states outside
+their sets, plans claimed (inside the data's cells), and the time of one plan's sets
+(``T = 20``, one CPU thread, batch of 1 and per plan in a batch of 64).
+
+Usage: ``python benchmarks/bench_reach_tightness.py [--quick]``
+"""
+from __future__ import annotations
+
+import argparse
+import time
+
+import torch
+
+from torchrl_brsl.reach import (DataDrivenReach, DoubleIntegrator, KinematicBicycle, SaturatedThrustPoint, Unicycle,
+                                sample_reach)
+from torchrl_brsl.sets import Zonotope
+
+SYSTEMS = {"bicycle": KinematicBicycle, "saturated point": SaturatedThrustPoint,
+           "double integrator": DoubleIntegrator, "unicycle": Unicycle}
+
+
+def plan_time_ms(reach: DataDrivenReach, system, batch: int, repeats: int) -> float:
+    gen = torch.Generator().manual_seed(5)
+    x0 = Zonotope.from_point(system.sample_states(batch, gen) * 0.5)
+    plans = system.sample_actions(batch, 20, generator=gen)
+    reach.reach(x0, plans)
+    start = time.perf_counter()
+    for _ in range(repeats):
+        reach.reach(x0, plans)
+    return (time.perf_counter() - start) / repeats * 1e3 / batch
+
+
+def measure(system, num: int, method: str, samples: int, repeats: int) -> dict:
+    gen = torch.Generator().manual_seed(0)
+    x, xp, u = system.offline_data(num, gen)
+    reach = DataDrivenReach.fit(x, xp, u, system.noise, translation_invariant_dims=system.translation_invariant_dims,
+                                method=method, max_generators=24)
+    center, half = (system.state_low + system.state_high) / 2, (system.state_high - system.state_low) / 2
+    x0 = center + 0.7 * half * (torch.rand(20, center.shape[0], generator=gen, dtype=torch.float64) * 2 - 1)
+    x0[:, list(system.translation_invariant_dims)] = 0.0
+    plans = system.sample_actions(20, 10, generator=gen)
+    result = sample_reach(reach, lambda s, a: system.step(s, a, gen), x0, plans, samples)
+    return {"ratio": result.median_ratio, "outside": result.violations, "checked": result.checked,
+            "claimed": int(result.covered.sum()), "ms": plan_time_ms(reach, system, 1, repeats),
+            "ms64": plan_time_ms(reach, system, 64, max(repeats // 10, 2))}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="fewer samples and repeats (a smoke run)")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    samples, repeats = (60, 5) if args.quick else (300, 50)
+    print(f"{'system':<18}{'data':>6}{'model':>8}{'width/spread':>14}{'outside':>16}{'claimed':>9}"
+          f"{'ms/plan':>9}{'ms/plan@64':>12}")
+    for name, system_type in SYSTEMS.items():
+        system = system_type()
+        for num in (500, 2000):
+            rows = {method: measure(system, num, method, samples, repeats) for method in ("global", "local")}
+            for method, row in rows.items():
+                print(f"{name:<18}{num:>6}{method:>8}{row['ratio']:>14.2f}{row['outside']:>8}/{row['checked']:<7}"
+                      f"{row['claimed']:>6}/20{row['ms']:>9.3f}{row['ms64']:>12.4f}")
+            print(f"{'':<24}local/global width {rows['local']['ratio'] / rows['global']['ratio']:.2f}, "
+                  f"time {rows['local']['ms'] / rows['global']['ms']:.1f}x")
+    print("targets: width/spread <= 5 with 0 outside; one plan's sets <= 0.3 ms")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,114 @@
+"""The local (cell) model, the default of DataDrivenReach: sound on sampled true systems, and tight."""
+import math
+
+import pytest
+import torch
+
+from torchrl_brsl.reach import (DataDrivenReach, DoubleIntegrator, KinematicBicycle, SaturatedThrustPoint,
+                                sample_reach)
+from torchrl_brsl.sets import Zonotope
+
+SYSTEMS = {"bicycle": KinematicBicycle, "saturated_point": SaturatedThrustPoint, "double_integrator": DoubleIntegrator}
+
+
+def fit(system, num, seed=0, **kwargs):
+    gen = torch.Generator().manual_seed(seed)
+    x, xp, u = system.offline_data(num, gen)
+    return DataDrivenReach.fit(x, xp, u, system.noise, translation_invariant_dims=system.translation_invariant_dims,
+                               **kwargs)
+
+
+def random_plans(system, n_plans=20, horizon=10, seed=1):
+    """Starts inside the data region (positions at 0), uniformly random plans."""
+    gen = torch.Generator().manual_seed(seed)
+    center, half = (system.state_low + system.state_high) / 2, (system.state_high - system.state_low) / 2
+    x0 = center + 0.7 * half * (torch.rand(n_plans, center.shape[0], generator=gen, dtype=torch.float64) * 2 - 1)
+    x0[:, list(system.translation_invariant_dims)] = 0.0
+    return x0, system.sample_actions(n_plans, horizon, generator=gen), gen
+
+
+def sampled(system, reach, seed=1, samples=300):
+    x0, plans, gen = random_plans(system, seed=seed)
+    return sample_reach(reach, lambda x, u: system.step(x, u, gen), x0, plans, samples)
+
+
+@pytest.mark.parametrize("num", [500, 2000])
+@pytest.mark.parametrize("name", list(SYSTEMS))
+def test_sampled_true_states_lie_in_the_local_sets(name, num):
+    """Every sampled state of every plan the model claims lies in its set (6 x up to 60,000 states)."""
+    system = SYSTEMS[name]()
+    result = sampled(system, fit(system, num))
+    assert result.covered.float().mean() >= 0.5, "most random plans of the data region should be claimed"
+    assert result.violations == 0, f"{result.violations} of {result.checked} sampled states outside their sets"
+
+
+def test_halving_the_error_bound_is_caught_by_the_sampling():
+    """Teeth: with the cells' error intervals halved, sampled true states fall outside."""
+    caught = 0
+    for name, system_type in SYSTEMS.items():
+        system = system_type()
+        reach = fit(system, 2000)
+        reach.cell_errors.mul_(0.5)
+        caught += sampled(system, reach).violations
+    assert caught > 0
+
+
+def test_local_sets_are_much_tighter_than_the_global_fit():
+    """Width over sampled spread (geometric mean over dims, median over steps and plans).
+
+    Measured with 2,000 steps: 7.3 (saturated point), 3.5 (double integrator), 7.8 (bicycle)
+    against 28, 14 and 80 for the global fit; the limits leave room for other seeds.
+    """
+    for name, limit in (("saturated_point", 8.5), ("double_integrator", 4.5), ("bicycle", 10.0)):
+        system = SYSTEMS[name]()
+        local = sampled(system, fit(system, 2000)).median_ratio
+        global_ = sampled(system, fit(system, 2000, method="global")).median_ratio
+        assert local < limit and local < global_ / 3, (name, local, global_)
+
+
+def test_a_plan_leaving_the_data_is_not_covered():
+    system = SaturatedThrustPoint()
+    reach = fit(system, 500)
+    x0 = torch.tensor([[0.0, 0.0, 1.9, 0.0]], dtype=torch.float64)  # near the data's top speed
+    push = torch.tensor([1.0, 0.0], dtype=torch.float64).expand(1, 10, 2)  # accelerate out of it
+    _, covered = reach.reach_covered(Zonotope.from_point(x0), push)
+    assert not bool(covered)
+    _, covered = reach.reach_covered(Zonotope.from_point(x0), -push)
+    assert bool(covered)
+
+
+def test_local_model_is_the_default_and_survives_save_and_load(tmp_path):
+    system = KinematicBicycle()
+    reach = fit(system, 500, max_generators=16)
+    assert reach.method == "local" and reach.plan_dependent
+    reach.save(tmp_path / "reach.pt")
+    loaded = DataDrivenReach.load(tmp_path / "reach.pt")
+    x0, plans, _ = random_plans(system, n_plans=3)
+    a, b = reach.reach(Zonotope.from_point(x0), plans), loaded.reach(Zonotope.from_point(x0), plans)
+    assert loaded.method == "local"
+    assert torch.equal(a.center, b.center) and torch.equal(a.generators, b.generators)
+    assert a.generators.shape[-1] == 16
+
+
+def test_sets_are_differentiable_in_the_plan():
+    system = SaturatedThrustPoint()
+    reach = fit(system, 500)
+    x0, plans, _ = random_plans(system, n_plans=2)
+    plans.requires_grad_(True)
+    reach.reach(Zonotope.from_point(x0), plans).center[..., :2].sum().backward()
+    assert torch.isfinite(plans.grad).all() and plans.grad.abs().sum() > 0
+
+
+def test_fit_rejects_bad_input_by_name():
+    system = DoubleIntegrator()
+    x, xp, u = system.offline_data(100, torch.Generator().manual_seed(0))
+    with pytest.raises(ValueError, match="method"):
+        DataDrivenReach.fit(x, xp, u, system.noise, method="nearest")
+    bad = x.clone()
+    bad[3, 2] = math.nan
+    with pytest.raises(ValueError, match="x_minus"):
+        DataDrivenReach.fit(bad, xp, u, system.noise)
+    with pytest.raises(ValueError, match="noise"):
+        DataDrivenReach.fit(x, xp, u, Zonotope(torch.zeros(3, dtype=torch.float64), torch.eye(3, dtype=torch.float64)))
+    with pytest.raises(ValueError, match="at least"):
+        DataDrivenReach.fit(x[:4], xp[:4], u[:4], system.noise)
