@@ -43,17 +43,16 @@ def main(argv=None) -> None:
     plan = torch.tensor([[1.0, 0.0]] * N_PLAN, dtype=torch.float64)
     horizon = N_PLAN + N_BRK
     checker = PlanChecker(reach, Failsafe(torch.zeros(2, dtype=torch.float64), N_BRK, system.braking), horizon,
-                          stop_dims=(2, 3), stop_tolerance=reach.error_generators_sequence(horizon)[-1, 2:]
-                          .abs().sum(-1).max().item() + 0.1, action_low=system.action_low,
+                          stop_dims=(2, 3), stop_slack=0.1, action_low=system.action_low,
                           action_high=system.action_high)
     obstacles = (obstacle.center.view(1, 1, 2), obstacle.generators.view(1, 1, 2, 2), torch.ones(1, 1, dtype=torch.bool))
     before = checker.evaluate(x0[None], plan[None], *obstacles)
     adjusted = GradientAdjuster(max_iterations=200, time_budget=None)(checker, x0[None], plan[None], *obstacles)
 
     sets = {}
-    for label, evaluation in (("proposed", before), ("adjusted", adjusted.evaluation)):
-        generators = reach.error_generators_sequence(horizon)
-        sets[label] = Zonotope(evaluation.centers[0], generators)
+    for label, evaluation, proposal in (("proposed", before, plan[None]),
+                                        ("adjusted", adjusted.evaluation, adjusted.plan)):
+        sets[label] = checker.rollout_sets(x0[None], proposal)[1][0]  # plan-dependent (local model)
         projected = sets[label].project((0, 1))
         exact = collision_value(projected, obstacle, backend="closed_form")
         lp = collision_value(projected[:N_PLAN], obstacle, backend="lp")
