@@ -1,11 +1,12 @@
-"""The layer behind a random policy on point_boxes, local against global model, servo cap on and off.
+"""The layer behind a random policy on a task, local against global model, servo caps on and off.
 
 Per setting: collisions (MuJoCo contacts) per episode, mean speed against the same policy
-without the layer, and the shares of steps with intervention, failsafe and
-``unverified_hold``. One-action proposals (``n_plan = 1``), stop slack 0.15, the facet-QP
-adjuster, ``--steps`` offline transitions.
+without the layer, the shares of steps with intervention, failsafe and ``unverified_hold``,
+and the median position radius of the final reachable set of the executed plans. One-action
+proposals (``n_plan = 1``) then the task's braking steps (``--n-brk`` for the uncapped
+servos), stop slack 0.15, the facet-QP adjuster, ``--steps`` offline transitions.
 
-Usage: ``python benchmarks/bench_closed_loop.py [--steps 1000] [--episodes 40]``
+Usage: ``python benchmarks/bench_closed_loop.py [--task point_boxes] [--steps 1000] [--episodes 40]``
 """
 from __future__ import annotations
 
@@ -20,25 +21,32 @@ from torchrl_brsl.reach import DataDrivenReach, collect_offline_data
 from torchrl_brsl.safety import BRSLSafetyLayer, Failsafe
 from torchrl_brsl.sets import Zonotope
 
-TASK, N_ENVS, EPISODE = "point_boxes", 10, 60
+N_ENVS = 10
+UNCAPPED = {"diffdrive_nav": {"max_acceleration": None, "max_turn_acceleration": None}}
 
 
-def run(options: dict, reach: DataDrivenReach | None, episodes: int) -> dict:
-    info = envs.safety_info(TASK)
-    base = SerialEnv(N_ENVS, [functools.partial(envs.make, TASK, seed=100 + i, episode_steps=EPISODE, **options)
+def run(task: str, options: dict, reach: DataDrivenReach | None, n_brk: int, episodes: int, episode: int) -> dict:
+    info = envs.safety_info(task)
+    base = SerialEnv(N_ENVS, [functools.partial(envs.make, task, seed=100 + i, episode_steps=episode, **options)
                               for i in range(N_ENVS)])
     env = base
     if reach is not None:
-        layer = BRSLSafetyLayer(reach, Failsafe(info.braking_action, info.n_brk), 1, stop_dims=info.velocity_dims,
+        layer = BRSLSafetyLayer(reach, Failsafe(info.braking_action, n_brk), 1, stop_dims=info.velocity_dims,
                                 stop_slack=0.15, action_low=info.action_low, action_high=info.action_high,
                                 adjuster="facet_qp")
         env = TransformedEnv(base, layer)
     torch.manual_seed(0)
     td = env.reset()
-    collided, current, speeds, flags, done_episodes = [], torch.zeros(N_ENVS, dtype=torch.bool), [], [], 0
+    collided, current, speeds, flags, radii, done_episodes = [], torch.zeros(N_ENVS, dtype=torch.bool), [], [], [], 0
     while done_episodes < episodes:
-        td["action"] = torch.rand(N_ENVS, 2) * 2 - 1
+        low, high = info.action_low, info.action_high
+        td["action"] = low + (high - low) * torch.rand(N_ENVS, low.shape[-1])
+        state = td["state"].double()
         td = env.step(td)
+        if reach is not None and len(speeds) % 5 == 0:  # the executed action's sets, plan + braking tail
+            executed = td["next", "safe_action"].double().unsqueeze(1)
+            sets = _final_sets(layer, state, executed)
+            radii.append(sets.generators[..., list(info.position_dims), :].abs().sum(-1).amax(-1))
         current |= td["next", "collision"].squeeze(-1)
         speeds.append(td["next", "speed"].squeeze(-1))
         if reach is not None:
@@ -54,31 +62,46 @@ def run(options: dict, reach: DataDrivenReach | None, episodes: int) -> dict:
             td = env.reset(td)
     shares = torch.cat(flags).mean(0).tolist() if flags else [float("nan")] * 3
     return {"collisions": sum(collided), "episodes": len(collided), "speed": torch.cat(speeds).mean().item(),
-            "intervened": shares[0], "failsafe": shares[1], "hold": shares[2]}
+            "intervened": shares[0], "failsafe": shares[1], "hold": shares[2],
+            "radius": torch.cat(radii).median().item() if radii else float("nan")}
+
+
+def _final_sets(layer: BRSLSafetyLayer, state, plan):
+    """The final reachable sets ``[B]`` of one-action plans with the layer's braking tail."""
+    checker = layer.checker
+    if checker.plan_dependent:
+        return checker.rollout_sets(state, plan)[1][:, -1]
+    actions, _ = checker.rollout(state, plan)
+    return layer.reach.reach(Zonotope.from_point(state), actions)[:, -1]
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--task", default="point_boxes")
     parser.add_argument("--steps", type=int, default=1000, help="offline transitions")
     parser.add_argument("--episodes", type=int, default=40)
+    parser.add_argument("--episode-steps", type=int, default=60)
+    parser.add_argument("--n-brk", type=int, default=None, help="braking steps of the uncapped servos")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    info = envs.safety_info(TASK)
+    task = args.task
+    info = envs.safety_info(task)
     noise = Zonotope(info.noise_center.double(), info.noise_generators.double())
     print(f"{'servo':<10}{'model':<8}{'collisions':>12}{'speed':>8}{'vs none':>9}{'interv.':>9}{'failsafe':>9}"
-          f"{'hold':>7}")
-    for servo, options in (("capped", {}), ("uncapped", {"max_acceleration": None})):
+          f"{'hold':>7}{'radius':>8}")
+    uncapped = UNCAPPED.get(task, {"max_acceleration": None})
+    for servo, options, n_brk in (("capped", {}, info.n_brk), ("uncapped", uncapped, args.n_brk or info.n_brk)):
         torch.manual_seed(0)
-        data = collect_offline_data(envs.make(TASK, empty=True, seed=1, **options), args.steps)
-        free = run(options, None, args.episodes)
+        data = collect_offline_data(envs.make(task, empty=True, seed=1, **options), args.steps)
+        free = run(task, options, None, n_brk, args.episodes, args.episode_steps)
         print(f"{servo:<10}{'none':<8}{free['collisions']:>6}/{free['episodes']:<5}{free['speed']:>8.3f}")
         for method in ("global", "local"):
             reach = DataDrivenReach.from_data(data, noise, translation_invariant_dims=info.position_dims,
                                               max_generators=30, method=method)
-            row = run(options, reach, args.episodes)
+            row = run(task, options, reach, n_brk, args.episodes, args.episode_steps)
             print(f"{servo:<10}{method:<8}{row['collisions']:>6}/{row['episodes']:<5}{row['speed']:>8.3f}"
                   f"{row['speed'] / free['speed']:>9.2f}{row['intervened']:>9.2f}{row['failsafe']:>9.2f}"
-                  f"{row['hold']:>7.2f}", flush=True)
+                  f"{row['hold']:>7.2f}{row['radius']:>8.3f}", flush=True)
 
 
 if __name__ == "__main__":

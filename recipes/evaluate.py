@@ -42,7 +42,7 @@ def run_episodes(cfg, actor, models, episodes: int | None = None, seed: int = 10
     """
     n = int(episodes or cfg.task.eval_layouts)
     rewards, goals, collided, contact_steps, speeds, times = [], [], [], [], [], []
-    interventions, failsafes, holds = [], [], []
+    interventions, failsafes, holds, outside = [], [], [], []
     frames = []
     for layout in range(n):
         env = common.make_env(cfg, seed=seed + layout, models=models, layout=layout)
@@ -61,6 +61,7 @@ def run_episodes(cfg, actor, models, episodes: int | None = None, seed: int = 10
                 interventions.append(nxt["brsl", "intervened"].item())
                 failsafes.append(nxt["brsl", "failsafe"].item())
                 holds.append(nxt["brsl", "unverified_hold"].item())
+                outside.append(nxt["brsl", "out_of_data"].item())
             reward = nxt["episode_reward"].item()  # task reward, before the layer's penalty
             speeds.append(nxt["speed"].item())
             contact_steps.append(nxt["collision"].item())
@@ -89,6 +90,7 @@ def run_episodes(cfg, actor, models, episodes: int | None = None, seed: int = 10
         "intervention_rate": float(np.mean(interventions)) if interventions else float("nan"),
         "failsafe_rate": float(np.mean(failsafes)) if failsafes else float("nan"),
         "unverified_hold_rate": float(np.mean(holds)) if holds else float("nan"),
+        "out_of_data_rate": float(np.mean(outside)) if outside else float("nan"),
     }
     return result
 
@@ -131,7 +133,8 @@ def table(results: list[dict], kind: str) -> str:
              "| | " + " | ".join(names) + " |", "|---" * (len(names) + 1) + "|"]
     extra = [("contact_steps", "Steps in contact [%]"), ("intervention_rate", "Interventions [share of steps]"),
              ("failsafe_rate", "Failsafe [share of steps]"),
-             ("unverified_hold_rate", "Unverified hold [share of steps]")]
+             ("unverified_hold_rate", "Unverified hold [share of steps]"),
+             ("out_of_data_rate", "Proposal out of data [share of steps]")]
     for key, label in ROWS[kind] + extra:
         lines.append(f"| {label} | " + " | ".join(cell(r, key) for r in results) + " |")
     return "\n".join(lines)

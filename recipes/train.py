@@ -196,6 +196,7 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:
             metrics.update({"brsl/intervention_rate": brsl["intervened"].float().mean().item(),
                             "brsl/failsafe_rate": brsl["failsafe"].float().mean().item(),
                             "brsl/unverified_hold_rate": brsl["unverified_hold"].float().mean().item(),
+                            "brsl/out_of_data_rate": brsl["out_of_data"].float().mean().item(),
                             "brsl/compute_time_ms": 1e3 * brsl["compute_time"].mean().item(),
                             "brsl/min_collision_value": brsl["min_collision_value"].min().item()})
         if logger is not None:

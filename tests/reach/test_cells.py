@@ -42,24 +42,25 @@ def test_sampled_true_states_lie_in_the_local_sets(name, num):
     assert result.violations == 0, f"{result.violations} of {result.checked} sampled states outside their sets"
 
 
-def test_halving_the_error_bound_is_caught_by_the_sampling():
-    """Teeth: with the cells' error intervals halved, sampled true states fall outside."""
-    caught = 0
+def test_a_weakened_error_bound_is_caught_by_the_sampling():
+    """Teeth: with the cells' model-error intervals scaled by 0.3, sampled true states fall
+    outside (measured: 39, 214 and 3 of ~60,000; at 0.5 none do: the bound has that slack)."""
+    caught = {}
     for name, system_type in SYSTEMS.items():
         system = system_type()
         reach = fit(system, 2000)
-        reach.cell_errors.mul_(0.5)
-        caught += sampled(system, reach).violations
-    assert caught > 0
+        reach.cell_errors.mul_(0.3)
+        caught[name] = sampled(system, reach).violations
+    assert sum(caught.values()) > 0, caught
 
 
 def test_local_sets_are_much_tighter_than_the_global_fit():
     """Width over sampled spread (geometric mean over dims, median over steps and plans).
 
-    Measured with 2,000 steps: 7.3 (saturated point), 3.5 (double integrator), 7.8 (bicycle)
-    against 28, 14 and 80 for the global fit; the limits leave room for other seeds.
+    Measured with 2,000 steps: 5.3 (saturated point), 3.4 (double integrator), 7.3 (bicycle)
+    against 28, 14 and 81 for the global fit; the limits leave room for other seeds.
     """
-    for name, limit in (("saturated_point", 8.5), ("double_integrator", 4.5), ("bicycle", 10.0)):
+    for name, limit in (("saturated_point", 6.5), ("double_integrator", 4.5), ("bicycle", 9.0)):
         system = SYSTEMS[name]()
         local = sampled(system, fit(system, 2000)).median_ratio
         global_ = sampled(system, fit(system, 2000, method="global")).median_ratio

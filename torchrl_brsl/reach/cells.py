@@ -3,11 +3,15 @@
 A global affine fit of a nonlinear robot leaves a residual as wide as the nonlinearity over
 the whole data region (saturation, drag, heading), which then enters every reachable set.
 Here the regressor space ``z = (x_F, u)`` (the non-translation-invariant states and the
-actions, scaled to unit range) is split by a k-d tree; every node of the tree (the root
-included) is a *cell*: the bounding box of its points, widened by an ``overlap`` share on
-each side, with its own least-squares fit on all data inside and an error interval valid
-for every ``z`` in the box. A reachable-set step uses the tightest cell containing the
-step's whole regressor box (Nguyen-Tuong et al., "Local Gaussian process regression for
+actions, scaled to unit range) is split by a regression tree per output, along the inputs
+and along the differences and sums of a state and an action (where a velocity servo's
+saturation has its kink, ``u - v = const``); each split is the median of the candidate
+direction that leaves the smallest squared residual of the two halves' affine fits (as
+M5 model trees do). Every node of the tree (the root included) is a *cell*: the bounding
+box of its points in those directions, widened by an ``overlap`` share on each side, with
+its own least-squares fit on all data inside and an error interval valid for every ``z``
+in the cell. A reachable-set step uses the tightest cell containing the exact interval
+hull, in every direction, of the step's regressor set (Nguyen-Tuong et al., "Local Gaussian process regression for
 real time online model learning", NeurIPS 2008, for local models; Milanese & Novara, "Set
 membership identification of nonlinear systems", Automatica 2004, for the bound).
 
@@ -26,9 +30,11 @@ approaches ``g + (noise seen) `` from above instead of ``g + 2 w̄``.
 
 ``L_k`` is the smallest constant consistent with the cell's data, ``max_{i,j} (|r_ik - r_jk|
 - 2 w̄_k)_+ / ||z_i - z_j||`` over all pairs, times ``lipschitz_margin``, and never below
-``2 w̄_k / diam``: a floor that lets ``g`` drift by ``w̄`` across the cell, which the data
-cannot rule out (the fit's slope error is of that order) and which keeps the intersection
-from claiming an exact value where the data are merely consistent with one.
+``max(2 w̄_k, range of r_k) / diam``: a floor that lets ``g`` drift across the cell by as much
+as the residuals themselves vary, which the data cannot rule out (the fit's slope error is
+of that order) and which keeps the intersection from claiming an exact value where the
+data are merely consistent with one (a noise-free output, such as a position, would
+otherwise get ``L = 0`` from data that never show its variation).
 """
 from __future__ import annotations
 
@@ -43,104 +49,181 @@ from torch import Tensor
 class Cells(NamedTuple):
     """Stacked local models: for each of the ``n`` outputs, ``M`` cells over scaled regressors ``z`` ``[d]``.
 
-    Outputs with fewer cells are padded with empty boxes (``low = inf``) that contain nothing.
+    A cell is a box in the split directions ``φ = directions @ z``. Outputs with fewer cells
+    are padded with empty boxes (``low = inf``) that contain nothing.
 
     Attributes:
-        low, high: ``[n, M, d]`` the cell boxes (scaled units).
+        directions: ``[f, d]`` the split directions (scaled units).
+        weights: ``[n, d]`` each output's input weights in the bound's distance.
+        low, high: ``[n, M, f]`` the cell boxes in those directions.
         slopes: ``[n, M, d]`` least-squares slopes of the output on ``z`` (scaled units).
         intercepts: ``[n, M]`` intercept at ``z = 0`` plus the centre of the error interval.
         errors: ``[n, M]`` half-widths of the error interval (model error, noise not included).
         lipschitz: ``[n, M]`` the residual's Lipschitz constants used in the bound.
+        delta: ``[n, M]`` the covering radius of each cell's data in the plain metric: a query
+            farther from the data adds ``L`` times the excess (see :meth:`DataDrivenReach.step_sets`).
         score: ``[n, M]`` the error in noise units, lower is tighter (selects among cells).
     """
 
+    directions: Tensor
+    weights: Tensor
     low: Tensor
     high: Tensor
     slopes: Tensor
     intercepts: Tensor
     errors: Tensor
     lipschitz: Tensor
+    delta: Tensor
     score: Tensor
 
 
-def tree_boxes(inputs: Tensor, leaf_size: int) -> list[Tensor]:
-    """Index sets of the nodes of a median-split k-d tree over ``inputs`` ``[N, d]`` (root first).
+METRIC_FLOORS = (0.05, 0.3, 1.0)
+"""Floors of the input weights tried per output (1.0: the plain metric); the tightest is kept."""
 
-    A node is split along its widest dimension while it holds at least ``2 leaf_size`` points.
+
+def split_directions(n_states: int, n_actions: int, dtype=torch.float64) -> Tensor:
+    """The inputs, then ``z_state ± z_action`` for every state-action pair: ``[f, n_states + n_actions]``."""
+    d = n_states + n_actions
+    rows = [torch.eye(d, dtype=dtype)]
+    for i in range(n_states):
+        for j in range(n_states, d):
+            for sign in (-1.0, 1.0):
+                row = torch.zeros(d, dtype=dtype)
+                row[i], row[j] = 1.0, sign
+                rows.append(row.unsqueeze(0))
+    return torch.cat(rows)
+
+
+def tree_nodes(features: Tensor, inputs: Tensor, target: Tensor, leaf_size: int,
+               allowed: Tensor) -> list[tuple[Tensor, Tensor]]:
+    """The nodes of a regression tree, root first: ``(index, region)`` with ``region`` ``[2, f]``.
+
+    The root's region is the data's bounding box in the ``allowed`` directions of ``features``
+    ``[N, f]`` (unbounded in the others). A node holding at least ``2 leaf_size`` points is
+    split at the median of the allowed feature whose halves leave the smallest summed squared
+    residual of affine fits of ``target`` ``[N]`` on ``inputs`` ``[N, d]``; the children's
+    regions are the parent's cut at the split, so that they tile it without gaps.
     """
-    nodes, stack = [], [torch.arange(inputs.shape[0])]
+    root = torch.stack((torch.where(allowed, features.amin(0), -torch.inf),
+                        torch.where(allowed, features.amax(0), torch.inf)))
+    nodes, stack = [], [(torch.arange(inputs.shape[0]), root)]
     while stack:
-        index = stack.pop()
-        nodes.append(index)
+        index, region = stack.pop()
+        nodes.append((index, region))
         if len(index) < 2 * leaf_size:
             continue
-        points = inputs[index]
-        dim = int((points.amax(0) - points.amin(0)).argmax())
-        order = points[:, dim].argsort()
-        half = len(index) // 2
-        stack.extend((index[order[:half]], index[order[half:]]))
+        best, best_error = None, torch.inf
+        for column in allowed.nonzero().flatten().tolist():
+            values = features[index, column]
+            order = values.argsort()
+            halves = (index[order[:len(index) // 2]], index[order[len(index) // 2:]])
+            error = sum(float(_affine_fit(inputs[h], target[h].unsqueeze(-1))[1].square().sum()) for h in halves)
+            if error < best_error:
+                cut = float(values[order[len(index) // 2 - 1]] + values[order[len(index) // 2]]) / 2
+                best, best_error = (halves, column, cut), error
+        (left, right), column, cut = best
+        left_region, right_region = region.clone(), region.clone()
+        left_region[1, column], right_region[0, column] = cut, cut
+        stack.extend(((left, left_region), (right, right_region)))
     return nodes
 
 
-def fit_cells(inputs: Tensor, targets: Tensor, noise_radius: Tensor, *, leaf_size: int = 32, overlap: float = 0.15,
-              extend: float = 0.05, lipschitz_margin: float = 1.0) -> Cells:
+def fit_cells(inputs: Tensor, targets: Tensor, noise_radius: Tensor, n_actions: int, *, leaf_size: int = 32,
+              overlap: float = 0.15, extend: float = 0.05, lipschitz_margin: float = 1.0) -> Cells:
     """Fit local affine models and their error intervals, one tree of cells per output.
 
-    A first tree over ``z`` gives local slopes, hence each output's input weights
-    (:func:`input_relevance`); each output then gets its own tree in its weighted metric, so
-    its cells are small along the inputs it depends on and span the others.
+    Per output, two trees are grown (splits along the inputs only, and also along the
+    state-action pairs); the cells' local slopes give the inputs' weights in the bound's
+    distance (:func:`input_relevance`) and several floors of the weights are tried. The
+    cells with the smallest mean error over probe sets (boxes around the data points) are
+    kept; the bound is sound for every choice.
 
     Args:
-        inputs: ``[N, d]`` scaled regressors ``z``.
+        inputs: ``[N, d]`` scaled regressors ``z`` (states first, the ``n_actions`` actions last).
         targets: ``[N, n]`` ``y = x+ - c_w - P x``.
         noise_radius: ``[n]`` ``w̄``, the noise's interval radius per state dimension.
+        n_actions: the number of action columns of ``inputs``.
         leaf_size: points in the smallest cells (before widening).
         overlap: each cell box is widened by this share of its width on every side, so that a
             small set near a split still fits into one cell.
         extend: cells reaching the edge of the data's bounding box extend beyond it by this
-            share of each input's range (the braking action at its bound, a robot at rest on
-            the edge of its speeds); their error grows by ``L`` times the weighted extension.
+            share of each direction's range (the braking action at its bound, a robot at rest
+            on the edge of its speeds); a query there is farther from the data, which the
+            per-query distance term of the error accounts for.
         lipschitz_margin: factor (>= 1) on the data's Lipschitz constants.
 
     Returns:
         The stacked :class:`Cells`, root first for every output.
     """
-    lo_all, hi_all = inputs.amin(0), inputs.amax(0)
-    boxes = _cell_boxes(inputs, torch.ones(inputs.shape[1], dtype=inputs.dtype), leaf_size, overlap)
-    slopes = torch.stack([_affine_fit(inputs[member], targets[member])[0][1:] for _, _, member in boxes])
-    metric = input_relevance(slopes)  # [n, d]
-    per_output = []
+    n_states = inputs.shape[1] - n_actions
+    directions = split_directions(n_states, n_actions, inputs.dtype)
+    features = inputs @ directions.T
+    axes = torch.zeros(directions.shape[0], dtype=torch.bool)
+    axes[:inputs.shape[1]] = True
+    per_output, chosen = [], []
     for k in range(targets.shape[1]):
-        cells = []
-        for lo, hi, member in _cell_boxes(inputs, metric[k], leaf_size, overlap):
-            theta, residual = _affine_fit(inputs[member], targets[member, k:k + 1])
-            bound = _bound_cell(inputs[member], residual[:, 0], noise_radius[k], metric[k], lo, hi, lipschitz_margin)
-            low_edge, high_edge = lo <= lo_all, hi >= hi_all
-            outward = extend * (hi_all - lo_all) * (low_edge | high_edge)
-            errors = bound[0] + bound[2] * (outward * metric[k]).norm()
-            lo, hi = lo - extend * (hi_all - lo_all) * low_edge, hi + extend * (hi_all - lo_all) * high_edge
-            cells.append((lo, hi, theta[1:, 0], theta[0, 0] + bound[1], errors, bound[2],
-                          errors / noise_radius[k].clamp_min(1e-12)))
-        per_output.append([torch.stack(parts) for parts in zip(*cells)])
+        candidates, metrics = [], []
+        for allowed in (axes, torch.ones_like(axes)):  # splits along the inputs only, or also the pairs
+            nodes = tree_nodes(features, inputs, targets[:, k], leaf_size, allowed)
+            leaves = [node for node in nodes if len(node[0]) < 2 * leaf_size] or nodes[:1]
+            boxes = _cell_boxes(features, nodes[0][1], leaves, overlap, extend, allowed)
+            fits = [_affine_fit(inputs[member], targets[member, k:k + 1]) for *_, member in boxes]
+            relevance = input_relevance(torch.stack([theta[1:] for theta, _ in fits]), floor=0.0)[0]
+            metrics += [relevance.clamp_min(floor) for floor in METRIC_FLOORS]
+            candidates += [_output_cells(inputs, boxes, fits, noise_radius[k], weights, directions, lipschitz_margin)
+                           for weights in metrics[-len(METRIC_FLOORS):]]
+        best = min(range(len(candidates)), key=lambda i: _probe_error(candidates[i], metrics[i], inputs, directions,
+                                                                       n_states))
+        per_output.append(candidates[best])
+        chosen.append(metrics[best])
     width = max(parts[0].shape[0] for parts in per_output)
-    fill = (torch.inf, -torch.inf, 0.0, 0.0, 0.0, 0.0, torch.inf)
-    stacked = [torch.stack([_pad_rows(parts[i], width, fill[i]) for parts in per_output]) for i in range(7)]
-    return Cells(*stacked)
+    fill = (torch.inf, -torch.inf, 0.0, 0.0, 0.0, 0.0, 0.0, torch.inf)
+    stacked = [torch.stack([_pad_rows(parts[i], width, fill[i]) for parts in per_output]) for i in range(len(fill))]
+    return Cells(directions, torch.stack(chosen), *stacked)
 
 
-def _cell_boxes(inputs: Tensor, weights: Tensor, leaf_size: int, overlap: float) -> list[tuple]:
-    """``(low, high, member)`` of the widened nodes of a k-d tree in the metric ``weights``."""
-    lo_all, hi_all = inputs.amin(0), inputs.amax(0)
+PROBE_RADII = (0.01, 0.03, 0.1)
+"""Radii (scaled units, on the state inputs) of the probe sets that rank candidate cells."""
+
+
+def _probe_error(parts: list[Tensor], weights: Tensor, inputs: Tensor, directions: Tensor, n_states: int) -> float:
+    """Mean error bound over boxes of :data:`PROBE_RADII` around every data point (on the state
+    inputs; uncovered probes count as twice the largest leaf error)."""
+    cells = Cells(directions, weights.unsqueeze(0), *(part.unsqueeze(0) for part in parts))
+    total = 0.0
+    for radius in PROBE_RADII:
+        z_radius = torch.zeros_like(inputs)
+        z_radius[:, :n_states] = radius
+        _, errors, covered = leaf_bounds(cells, inputs, z_radius, directions[:, :n_states].abs().sum(-1) * radius)
+        total += float(torch.where(covered, errors[:, 0], 2 * parts[4].max()).mean())
+    return total
+
+
+def _cell_boxes(features: Tensor, root: Tensor, leaves: list[tuple], overlap: float, extend: float,
+                allowed: Tensor) -> list[tuple]:
+    """``(low, high, member)`` per leaf: its region (extended by ``extend`` where it reaches the
+    root's edge) and the data of the region widened by ``overlap`` (the fit's points)."""
+    lo_all, hi_all = root
+    span = torch.where(allowed, extend * (hi_all - lo_all), 0.0)
     boxes = []
-    for index in tree_boxes(inputs * weights, leaf_size):
-        core = inputs[index]
-        lo, hi = core.amin(0), core.amax(0)
-        pad = overlap * (hi - lo)
-        lo, hi = torch.maximum(lo - pad, lo_all), torch.minimum(hi + pad, hi_all)
-        member = ((inputs >= lo) & (inputs <= hi)).all(-1)
-        if int(member.sum()) >= 2 * (inputs.shape[1] + 1):
-            boxes.append((lo, hi, member))
+    for _, (lo, hi) in leaves:
+        pad = torch.where(allowed, overlap * (hi - lo), 0.0)
+        member = ((features >= lo - pad) & (features <= hi + pad)).all(-1)
+        low_edge, high_edge = (lo <= lo_all) & allowed, (hi >= hi_all) & allowed
+        boxes.append((lo - span * low_edge, hi + span * high_edge, member))
     return boxes
+
+
+def _output_cells(inputs: Tensor, boxes: list[tuple], fits: list[tuple], noise_radius: Tensor, weights: Tensor,
+                  directions: Tensor, margin: float) -> list[Tensor]:
+    """The stacked cells of one output in the metric ``weights`` (the fields of :class:`Cells`
+    after ``directions``)."""
+    cells = []
+    for (lo, hi, member), (theta, residual) in zip(boxes, fits):
+        errors, centre, lipschitz, delta = _bound_cell(inputs[member], residual[:, 0], noise_radius, weights, margin)
+        cells.append((lo, hi, theta[1:, 0], theta[0, 0] + centre, errors, lipschitz, delta,
+                      errors / noise_radius.clamp_min(1e-12)))
+    return [torch.stack(parts) for parts in zip(*cells)]
 
 
 def _pad_rows(values: Tensor, rows: int, fill: float) -> Tensor:
@@ -157,7 +240,9 @@ def input_relevance(slopes: Tensor, floor: float = 0.05) -> Tensor:
     look far apart, or the covering radius of all ``d`` dimensions enters the bound where the
     few curved ones would do. The weight is the range of the slope over the cells, relative to
     the output's largest, floored at ``floor``. The bound stays sound for any weights, because
-    its Lipschitz constants are estimated in the same weighted metric.
+    its Lipschitz constants are estimated in the same weighted metric; a dependence the slopes
+    miss (friction coupling the axes) shows up as a large constant, which is why
+    :func:`fit_cells` tries several floors and keeps the tightest.
 
     Args:
         slopes: ``[M, d, n]`` the cells' fitted slopes.
@@ -173,22 +258,23 @@ def _affine_fit(z: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
     return theta, y - regressors @ theta
 
 
-def _bound_cell(z: Tensor, residual: Tensor, noise_radius: Tensor, weights: Tensor, lo: Tensor, hi: Tensor,
-                margin: float, chunk: int = 256) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+def _bound_cell(z: Tensor, residual: Tensor, noise_radius: Tensor, weights: Tensor, margin: float,
+                chunk: int = 256) -> tuple[Tensor, Tensor, Tensor]:
     """Error interval of one output on one cell, in the weighted metric (module docstring).
 
     Returns:
-        ``(half-width, centre, lipschitz, score)``, scalars.
+        ``(half-width, centre, lipschitz, δ)``, scalars.
     """
     weighted = z * weights  # [s, d]
-    diameter = ((hi - lo) * weights).norm().clamp_min(1e-12)
+    diameter = (weighted.amax(0) - weighted.amin(0)).norm().clamp_min(1e-12)
     blocks = torch.split(torch.arange(len(z)), chunk)
     slope = residual.new_zeros(())
     for rows in blocks:  # pairwise, in row blocks of [c, s]
         distance = torch.cdist(weighted[rows], weighted)
         gap = ((residual[rows].unsqueeze(-1) - residual).abs() - 2 * noise_radius).clamp_min(0)
         slope = torch.maximum(slope, torch.where(distance > 0, gap / distance.clamp_min(1e-300), 0.0).amax())
-    lipschitz = torch.maximum(slope * margin, 2 * noise_radius / diameter)
+    spread = torch.maximum(2 * noise_radius, residual.amax() - residual.amin())
+    lipschitz = torch.maximum(slope * margin, spread / diameter)
     upper, lower = residual.new_tensor(-torch.inf), residual.new_tensor(torch.inf)
     for rows in blocks:  # max_j min_i (r_i + L d_ij), min_j max_i (r_i - L d_ij)
         reach = lipschitz * torch.cdist(weighted[rows], weighted)
@@ -197,8 +283,7 @@ def _bound_cell(z: Tensor, residual: Tensor, noise_radius: Tensor, weights: Tens
     delta = _nearest_distance(weighted).max()
     upper = upper + noise_radius + lipschitz * delta
     lower = lower - noise_radius - lipschitz * delta
-    errors = (upper - lower) / 2
-    return errors, (upper + lower) / 2, lipschitz, errors / noise_radius.clamp_min(1e-12)
+    return (upper - lower) / 2, (upper + lower) / 2, lipschitz, _nearest_distance(z).max()
 
 
 def _nearest_distance(points: Tensor) -> Tensor:
@@ -207,13 +292,36 @@ def _nearest_distance(points: Tensor) -> Tensor:
     return torch.as_tensor(np.asarray(dist)[:, 1], dtype=points.dtype)
 
 
-def select_cells(cells: Cells, low: Tensor, high: Tensor) -> tuple[Tensor, Tensor]:
-    """Per output, the tightest cell containing each query box ``[low, high]`` ``[..., d]``.
+def leaf_bounds(cells: Cells, z_center: Tensor, z_radius: Tensor, phi_radius: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Per output, one leaf's affine model and an error bound valid over a whole query set.
+
+    The leaves tile the data's region, so every ``z`` of the query set lies in one of the
+    leaves its interval hull meets; there ``h(z) ∈ ℓ_l(z) ± e_l``. The model ``ℓ_a`` of the leaf
+    containing the query's centre is used, with the error ``max_l (e_l + max_z |ℓ_l(z) - ℓ_a(z)|)``
+    over the met leaves ``l`` (the second term over the query's ``z``-box; 0 for ``l = a``).
+
+    Args:
+        cells: leaves of ``n`` outputs, boxes in the split directions.
+        z_center, z_radius: ``[..., d]`` the query's ``z``-box (scaled units).
+        phi_radius: ``[..., f]`` its exact radius along each split direction (around
+            ``directions @ z_center``).
 
     Returns:
-        ``(index [..., n], covered [...])``: the chosen cells (the root where none contains the
-        box) and whether every output found one.
+        ``(index [..., n], errors [..., n], covered [...])``: the leaf whose model is used, the
+        error half-width, and whether the query lies inside the data's region.
     """
-    contains = ((low[..., None, None, :] >= cells.low) & (high[..., None, None, :] <= cells.high)).all(-1)  # [..., n, M]
-    score = torch.where(contains, cells.score, torch.inf)
-    return score.argmin(-1), contains.any(-1).all(-1)
+    phi = z_center @ cells.directions.T
+    low, high = (phi - phi_radius)[..., None, None, :], (phi + phi_radius)[..., None, None, :]
+    meets = ((low <= cells.high) & (high >= cells.low)).all(-1)  # [..., n, M]
+    at_centre = ((phi[..., None, None, :] >= cells.low) & (phi[..., None, None, :] <= cells.high)).all(-1)
+    index = torch.where(at_centre, cells.score, torch.inf).argmin(-1)  # [..., n]
+    rows = torch.arange(index.shape[-1], device=index.device)
+    slope_gap = cells.slopes - cells.slopes[rows, index].unsqueeze(-2)  # [..., n, M, d]
+    offset_gap = cells.intercepts - cells.intercepts[rows, index].unsqueeze(-1)
+    gap = ((slope_gap @ z_center.unsqueeze(-2).unsqueeze(-1)).squeeze(-1) + offset_gap).abs()
+    gap = gap + (slope_gap.abs() @ z_radius.unsqueeze(-2).unsqueeze(-1)).squeeze(-1)  # [..., n, M]
+    meets = meets | ~meets.any(-1, keepdim=True)  # outside every leaf (not covered): all of them, finite
+    errors = torch.where(meets, cells.errors + gap, -torch.inf).amax(-1)
+    root = cells.low.amin(-2), cells.high.amax(-2)  # [n, f]: the leaves' hull is the root
+    covered = ((phi - phi_radius).unsqueeze(-2) >= root[0]).all(-1) & ((phi + phi_radius).unsqueeze(-2) <= root[1]).all(-1)
+    return index, errors, covered.all(-1) & at_centre.any(-1).all(-1)

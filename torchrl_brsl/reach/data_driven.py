@@ -8,7 +8,7 @@ import torch
 from tensordict import TensorDict
 from torch import Tensor, nn
 
-from torchrl_brsl.reach.cells import Cells, fit_cells, select_cells
+from torchrl_brsl.reach.cells import Cells, fit_cells, leaf_bounds
 from torchrl_brsl.reach.lipschitz import covering_radius, residual_lipschitz
 from torchrl_brsl.sets import Zonotope, pad_generators, reduce_girard
 from torchrl_brsl.sets._checks import check_tensor, skip_value_checks
@@ -86,7 +86,7 @@ class DataDrivenReach(nn.Module):
     @classmethod
     def fit(cls, x_minus, x_plus, u_minus, noise: Zonotope, translation_invariant_dims: Sequence[int] = (),
             max_generators: int | None = None, n_neighbors: int = 10, lipschitz_margin: float | None = None,
-            domain: tuple | None = None, method: str = "local", leaf_size: int = 32, overlap: float = 0.15,
+            domain: tuple | None = None, method: str = "local", leaf_size: int | None = None, overlap: float = 0.15,
             extend: float = 0.05,
             dtype: torch.dtype = torch.float64) -> DataDrivenReach:
         """Fit the model and its error zonotope from offline transitions.
@@ -110,7 +110,10 @@ class DataDrivenReach(nn.Module):
                 set-membership error bounds (:mod:`torchrl_brsl.reach.cells`), chosen per step
                 by the set's own regressor box; ``"global"``: one affine fit for the whole data
                 region (plan-independent generators; much wider on nonlinear robots).
-            leaf_size, overlap, extend: the cells of ``method="local"`` (see :func:`fit_cells`).
+            leaf_size, overlap, extend: the cells of ``method="local"`` (see :func:`fit_cells`);
+                ``leaf_size`` defaults to ``10 (d + 1)`` for ``d`` regressors (fewer points per
+                cell under-estimate the Lipschitz constants in higher dimensions: with 32
+                points a 6-D diffdrive model let a sampled state fall 1 mm outside).
             dtype: computation dtype (float64 by default).
         """
         if method not in METHODS:
@@ -180,7 +183,8 @@ class DataDrivenReach(nn.Module):
             u_minus=u_minus,
         )
         if method == "local":
-            params.update(_local_params(fit_cells(scaled, target, w_g.abs().sum(-1), leaf_size=leaf_size,
+            leaf_size = 10 * (scaled.shape[1] + 1) if leaf_size is None else int(leaf_size)
+            params.update(_local_params(fit_cells(scaled, target, w_g.abs().sum(-1), m, leaf_size=leaf_size,
                                                   overlap=overlap, extend=extend, lipschitz_margin=lipschitz_margin),
                                         scale, free, select, w_c))
         return cls(params, fixed, delta, max_generators)
@@ -351,14 +355,21 @@ class DataDrivenReach(nn.Module):
             (generators reduced to ``max_generators`` when set).
         """
         free, scale = self._free_index, self.input_scale
-        radius = generators[..., free, :].abs().sum(-1)
+        directions = self.cell_directions  # [f, d] in scaled units
         z_center = torch.cat((center[..., free], action), dim=-1) / scale
-        z_radius = torch.cat((radius, torch.zeros_like(action)), dim=-1) / scale
-        index, covered = select_cells(self._cells, z_center - z_radius, z_center + z_radius)  # [..., n]
+        z_generators = generators[..., free, :] / scale[:len(free), None]  # [..., n_F, p] (actions are exact)
+        phi_radius = (directions[:, :len(free)] @ z_generators).abs().sum(-1)  # exact interval hull per direction
+        z_radius = torch.cat((z_generators.abs().sum(-1), torch.zeros_like(action)), dim=-1)
+        index, errors, covered = leaf_bounds(self._cells, z_center, z_radius, phi_radius)  # [..., n]
         rows = self._output_index
+        # a cell's bound holds within its data's covering radius δ: a set whose centre lies
+        # farther from the data gets L times the excess (the data are assumed to cover the set
+        # around its centre, as the paper assumes for every query)
+        far = self._data_distance_scaled(z_center.detach()).unsqueeze(-1) - self.cell_delta[rows, index]
+        errors = errors + self.cell_lipschitz[rows, index] * far.clamp_min(0)
         A, B = self.cell_state_rows[rows, index], self.cell_input_rows[rows, index]  # [..., n, n], [..., n, m]
         center = (A @ center.unsqueeze(-1) + B @ action.unsqueeze(-1)).squeeze(-1) + self.cell_offset[rows, index]
-        error = torch.diag_embed(self.cell_errors[rows, index])
+        error = torch.diag_embed(errors)
         if self._diagonal_noise is not None:
             error = error + torch.diag_embed(self._diagonal_noise).expand_as(error)
             new = (error,)
@@ -366,12 +377,14 @@ class DataDrivenReach(nn.Module):
             new = (error, self.noise_generators.expand(*center.shape, -1))
         generators = torch.cat((A @ generators, *new), dim=-1)
         if self.max_generators is not None and generators.shape[-1] > self.max_generators:
-            generators = reduce_girard(generators, self.max_generators)
+            with skip_value_checks():  # finite by construction
+                generators = reduce_girard(generators, self.max_generators)
         return center, generators, covered
 
     @property
     def _cells(self) -> Cells:
-        return Cells(self.cell_low, self.cell_high, None, None, None, None, self.cell_score)
+        return Cells(self.cell_directions, self.cell_weights, self.cell_low, self.cell_high, self.cell_slopes, self.cell_intercepts,
+                     self.cell_errors, self.cell_lipschitz, self.cell_delta, self.cell_score)
 
     @property
     def _output_index(self) -> Tensor:
@@ -382,18 +395,17 @@ class DataDrivenReach(nn.Module):
 
     @property
     def _free_index(self) -> list[int]:
-        key = ("free",)
-        if key not in self._cache:
-            self._cache[key] = self.free_dims
-            gens = self.noise_generators
-            diagonal = gens.shape[-1] == gens.shape[-2] and bool((gens == torch.diag_embed(gens.diagonal())).all())
-            self._cache[("diagonal_noise",)] = gens.diagonal().abs() if diagonal else None
-        return self._cache[key]
+        if ("free",) not in self._cache:
+            self._cache[("free",)] = self.free_dims
+        return self._cache[("free",)]
 
     @property
     def _diagonal_noise(self) -> Tensor | None:
         """The noise radius per dim when ``W``'s generators form a diagonal matrix, else ``None``."""
-        self._free_index
+        if ("diagonal_noise",) not in self._cache:
+            gens = self.noise_generators
+            diagonal = gens.shape[-1] == gens.shape[-2] and bool((gens == torch.diag_embed(gens.diagonal())).all())
+            self._cache[("diagonal_noise",)] = gens.diagonal().abs() if diagonal else None
         return self._cache[("diagonal_noise",)]
 
     def reach_literal(self, initial: Zonotope, actions: Tensor) -> Zonotope:
@@ -456,21 +468,25 @@ class DataDrivenReach(nn.Module):
         inside &= ((actions >= low[n:].to(actions)) & (actions <= high[n:].to(actions))).all(-1)
         return inside.all(-1)
 
+    def _data_distance_scaled(self, z: Tensor) -> Tensor:
+        """Distance ``[...]`` of scaled regressors ``z`` ``[..., d]`` to the nearest data point."""
+        from scipy.spatial import cKDTree
+
+        if self._tree is None:
+            inputs = torch.cat((self.x_minus[:, self.free_dims], self.u_minus), dim=1) / self.input_scale
+            self._tree = cKDTree(inputs.cpu().numpy())
+        dist, _ = self._tree.query(z.reshape(-1, z.shape[-1]).cpu().numpy())
+        return torch.as_tensor(dist, dtype=z.dtype, device=z.device).reshape(z.shape[:-1])
+
     def data_distance(self, states: Tensor, actions: Tensor) -> Tensor:
         """Scaled distance from ``(states, actions)`` to the nearest data point: ``[...]``.
 
         Queries with a distance above :attr:`covering_radius` lie outside the region the
         offline data cover, where the error bound is not backed by data.
         """
-        from scipy.spatial import cKDTree
-
-        if self._tree is None:
-            inputs = torch.cat((self.x_minus[:, self.free_dims], self.u_minus), dim=1) / self.input_scale
-            self._tree = cKDTree(inputs.cpu().numpy())
         query = torch.cat((states[..., self.free_dims].to(self.input_scale.dtype),
                            actions.to(self.input_scale.dtype)), dim=-1) / self.input_scale
-        dist, _ = self._tree.query(query.detach().reshape(-1, query.shape[-1]).cpu().numpy())
-        return torch.as_tensor(dist, dtype=query.dtype).reshape(query.shape[:-1])
+        return self._data_distance_scaled(query.detach())
 
     # ----------------------------------------------------------------- persistence
     def save(self, path: str | Path) -> None:
@@ -519,10 +535,11 @@ def _local_params(cells: Cells, scale: Tensor, free: list[int], select: Tensor, 
     slopes = cells.slopes / scale  # [n, M, d] per unscaled input
     state_rows = select.unsqueeze(1).expand(-1, slopes.shape[1], -1).clone()  # [n, M, n]
     state_rows[:, :, free] += slopes[..., :n_free]
-    return dict(cell_low=cells.low, cell_high=cells.high, cell_state_rows=state_rows,
+    return dict(cell_directions=cells.directions, cell_weights=cells.weights, cell_low=cells.low, cell_high=cells.high, cell_state_rows=state_rows,
                 cell_input_rows=slopes[..., n_free:].contiguous(),
                 cell_offset=cells.intercepts + noise_center.unsqueeze(-1), cell_errors=cells.errors,
-                cell_lipschitz=cells.lipschitz, cell_score=cells.score)
+                cell_lipschitz=cells.lipschitz, cell_delta=cells.delta, cell_score=cells.score, cell_slopes=cells.slopes,
+                cell_intercepts=cells.intercepts)
 
 
 def _domain(domain, size: int, dtype: torch.dtype) -> tuple[Tensor, Tensor]:

@@ -25,6 +25,7 @@ DIAGNOSTICS = {
     "local": torch.bool,  # the executed plan was verified by the local (restricted-domain) model
     "unverified_hold": torch.bool,  # beyond every verified plan: the braking policy holds (paper Assumption 1)
     "invalid_input": torch.bool,  # NaN/inf in the state, proposal or obstacles
+    "out_of_data": torch.bool,  # the proposal's sets left the region the offline data cover: not verifiable
     "min_collision_value": torch.float64,  # min v* of the (adjusted) proposal's sets (inf: no obstacle)
     "adjust_iterations": torch.int64,
     "compute_time": torch.float64,  # seconds spent in the layer this step
@@ -329,6 +330,7 @@ class BRSLSafetyLayer(Transform):
         with torch.no_grad():
             evaluation = checker.evaluate(x0, plan, obstacle_centers, obstacle_generators, obstacle_mask)
         proposal_safe = _and_valid(evaluation.safe, valid)
+        out_of_data = _and_valid(~evaluation.covered, valid)
         accepted = proposal_safe
         actions, values = evaluation.actions, evaluation.values
         iterations = torch.zeros(n_envs, dtype=torch.long, device=state.device)
@@ -416,6 +418,7 @@ class BRSLSafetyLayer(Transform):
             "local": local,
             "unverified_hold": exhausted,
             "invalid_input": torch.zeros_like(accepted) if valid is None else ~valid,
+            "out_of_data": out_of_data,
             "min_collision_value": values.flatten(1).amin(-1),
             "adjust_iterations": iterations,
         }
