@@ -129,7 +129,7 @@ def tree_nodes(features: Tensor, inputs: Tensor, target: Tensor, leaf_size: int,
 
 
 def fit_cells(inputs: Tensor, targets: Tensor, noise_radius: Tensor, n_actions: int, *, leaf_size: int = 32,
-              overlap: float = 0.15, extend: float = 0.05, lipschitz_margin: float = 1.0) -> Cells:
+              overlap: float = 0.15, extend: float = 0.25, lipschitz_margin: float = 1.0) -> Cells:
     """Fit local affine models and their error intervals, one tree of cells per output.
 
     Per output, two trees are grown (splits along the inputs only, and also along the
@@ -310,18 +310,27 @@ def leaf_bounds(cells: Cells, z_center: Tensor, z_radius: Tensor, phi_radius: Te
         ``(index [..., n], errors [..., n], covered [...])``: the leaf whose model is used, the
         error half-width, and whether the query lies inside the data's region.
     """
-    phi = z_center @ cells.directions.T
-    low, high = (phi - phi_radius)[..., None, None, :], (phi + phi_radius)[..., None, None, :]
-    meets = ((low <= cells.high) & (high >= cells.low)).all(-1)  # [..., n, M]
-    at_centre = ((phi[..., None, None, :] >= cells.low) & (phi[..., None, None, :] <= cells.high)).all(-1)
-    index = torch.where(at_centre, cells.score, torch.inf).argmin(-1)  # [..., n]
-    rows = torch.arange(index.shape[-1], device=index.device)
-    slope_gap = cells.slopes - cells.slopes[rows, index].unsqueeze(-2)  # [..., n, M, d]
-    offset_gap = cells.intercepts - cells.intercepts[rows, index].unsqueeze(-1)
-    gap = ((slope_gap @ z_center.unsqueeze(-2).unsqueeze(-1)).squeeze(-1) + offset_gap).abs()
-    gap = gap + (slope_gap.abs() @ z_radius.unsqueeze(-2).unsqueeze(-1)).squeeze(-1)  # [..., n, M]
-    meets = meets | ~meets.any(-1, keepdim=True)  # outside every leaf (not covered): all of them, finite
-    errors = torch.where(meets, cells.errors + gap, -torch.inf).amax(-1)
-    root = cells.low.amin(-2), cells.high.amax(-2)  # [n, f]: the leaves' hull is the root
-    covered = ((phi - phi_radius).unsqueeze(-2) >= root[0]).all(-1) & ((phi + phi_radius).unsqueeze(-2) <= root[1]).all(-1)
-    return index, errors, covered.all(-1) & at_centre.any(-1).all(-1)
+    n, n_leaves, d = cells.slopes.shape
+    phi = (z_center @ cells.directions.T)[..., None, None, :]  # [..., 1, 1, f]
+    radius = phi_radius[..., None, None, :]
+    # > 0 where the query box misses a leaf (float comparisons: much faster than bool ones here)
+    gap_out = torch.maximum(cells.low - phi - radius, phi - radius - cells.high).amax(-1)  # [..., n, M]
+    centre_out = torch.maximum(cells.low - phi, phi - cells.high).amax(-1)
+    index = torch.where(centre_out <= 0, cells.score, torch.inf).argmin(-1)  # [..., n]
+    flat = index + torch.arange(n, device=index.device) * n_leaves
+    prediction = (z_center @ cells.slopes.reshape(n * n_leaves, d).T).unflatten(-1, (n, n_leaves)) + cells.intercepts
+    chosen = prediction.gather(-1, index.unsqueeze(-1))
+    slope_gap = cells.slopes - cells.slopes.reshape(n * n_leaves, d)[flat].unsqueeze(-2)  # [..., n, M, d]
+    model_gap = (prediction - chosen).abs() + (slope_gap.abs() @ z_radius[..., None, :, None]).squeeze(-1)
+    errors = torch.where(gap_out <= 0, cells.errors + model_gap, -torch.inf).amax(-1)
+    missed = ~torch.isfinite(errors)  # outside every leaf (not covered): all of them, finite
+    if bool(missed.any()):
+        errors = torch.where(missed, (cells.errors + model_gap).amax(-1), errors)
+    covered = ~missed.any(-1) & (centre_out.amin(-1) <= 0).all(-1) & (_root_excess(cells, phi, radius) <= 0)
+    return index, errors, covered
+
+
+def _root_excess(cells: Cells, phi: Tensor, radius: Tensor) -> Tensor:
+    """How far the query box reaches beyond the leaves' hull (the data's region): ``[...]``."""
+    low, high = cells.low.amin(-2), cells.high.amax(-2)  # [n, f]
+    return torch.maximum(low - (phi - radius).squeeze(-2), (phi + radius).squeeze(-2) - high).amax((-1, -2))

@@ -80,14 +80,13 @@ class DataDrivenReach(nn.Module):
         self.covering_radius = float(covering_radius)
         self.max_generators = max_generators
         self._cache: dict = {}
-        self._tree = None
 
     # ----------------------------------------------------------------- fitting
     @classmethod
     def fit(cls, x_minus, x_plus, u_minus, noise: Zonotope, translation_invariant_dims: Sequence[int] = (),
             max_generators: int | None = None, n_neighbors: int = 10, lipschitz_margin: float | None = None,
             domain: tuple | None = None, method: str = "local", leaf_size: int | None = None, overlap: float = 0.15,
-            extend: float = 0.05,
+            extend: float = 0.25,
             dtype: torch.dtype = torch.float64) -> DataDrivenReach:
         """Fit the model and its error zonotope from offline transitions.
 
@@ -361,14 +360,15 @@ class DataDrivenReach(nn.Module):
         phi_radius = (directions[:, :len(free)] @ z_generators).abs().sum(-1)  # exact interval hull per direction
         z_radius = torch.cat((z_generators.abs().sum(-1), torch.zeros_like(action)), dim=-1)
         index, errors, covered = leaf_bounds(self._cells, z_center, z_radius, phi_radius)  # [..., n]
-        rows = self._output_index
+        n, m = self.state_dim, action.shape[-1]
+        packed = self._leaf_rows[index + self._output_index * self.cell_low.shape[1]]  # [..., n, n + m + 3]
+        A, B, offset, lipschitz, delta = packed.split((n, m, 1, 1, 1), dim=-1)
+        center = (A @ center.unsqueeze(-1) + B @ action.unsqueeze(-1) + offset).squeeze(-1)
         # a cell's bound holds within its data's covering radius δ: a set whose centre lies
         # farther from the data gets L times the excess (the data are assumed to cover the set
         # around its centre, as the paper assumes for every query)
-        far = self._data_distance_scaled(z_center.detach()).unsqueeze(-1) - self.cell_delta[rows, index]
-        errors = errors + self.cell_lipschitz[rows, index] * far.clamp_min(0)
-        A, B = self.cell_state_rows[rows, index], self.cell_input_rows[rows, index]  # [..., n, n], [..., n, m]
-        center = (A @ center.unsqueeze(-1) + B @ action.unsqueeze(-1)).squeeze(-1) + self.cell_offset[rows, index]
+        far = self._data_distance_scaled(z_center.detach()).unsqueeze(-1) - delta.squeeze(-1)
+        errors = errors + lipschitz.squeeze(-1) * far.clamp_min(0)
         error = torch.diag_embed(errors)
         if self._diagonal_noise is not None:
             error = error + torch.diag_embed(self._diagonal_noise).expand_as(error)
@@ -382,9 +382,23 @@ class DataDrivenReach(nn.Module):
         return center, generators, covered
 
     @property
+    def _leaf_rows(self) -> Tensor:
+        """Per (output, leaf), flattened: ``[A row, B row, offset, L, δ]`` ``[n M, n + m + 3]``."""
+        key = ("leaf rows",)
+        if key not in self._cache:
+            parts = (self.cell_state_rows, self.cell_input_rows, self.cell_offset.unsqueeze(-1),
+                     self.cell_lipschitz.unsqueeze(-1), self.cell_delta.unsqueeze(-1))
+            self._cache[key] = torch.cat(parts, dim=-1).flatten(0, 1)
+        return self._cache[key]
+
+    @property
     def _cells(self) -> Cells:
-        return Cells(self.cell_directions, self.cell_weights, self.cell_low, self.cell_high, self.cell_slopes, self.cell_intercepts,
-                     self.cell_errors, self.cell_lipschitz, self.cell_delta, self.cell_score)
+        key = ("cells",)
+        if key not in self._cache:
+            self._cache[key] = Cells(self.cell_directions, self.cell_weights, self.cell_low, self.cell_high,
+                                     self.cell_slopes, self.cell_intercepts, self.cell_errors, self.cell_lipschitz,
+                                     self.cell_delta, self.cell_score)
+        return self._cache[key]
 
     @property
     def _output_index(self) -> Tensor:
@@ -470,13 +484,11 @@ class DataDrivenReach(nn.Module):
 
     def _data_distance_scaled(self, z: Tensor) -> Tensor:
         """Distance ``[...]`` of scaled regressors ``z`` ``[..., d]`` to the nearest data point."""
-        from scipy.spatial import cKDTree
-
-        if self._tree is None:
-            inputs = torch.cat((self.x_minus[:, self.free_dims], self.u_minus), dim=1) / self.input_scale
-            self._tree = cKDTree(inputs.cpu().numpy())
-        dist, _ = self._tree.query(z.reshape(-1, z.shape[-1]).cpu().numpy())
-        return torch.as_tensor(dist, dtype=z.dtype, device=z.device).reshape(z.shape[:-1])
+        key = ("scaled data",)
+        if key not in self._cache:
+            self._cache[key] = torch.cat((self.x_minus[:, self.free_dims], self.u_minus), dim=1) / self.input_scale
+        data = self._cache[key].to(z)
+        return torch.cdist(z.reshape(-1, z.shape[-1]), data).amin(-1).reshape(z.shape[:-1])
 
     def data_distance(self, states: Tensor, actions: Tensor) -> Tensor:
         """Scaled distance from ``(states, actions)`` to the nearest data point: ``[...]``.
