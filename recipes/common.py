@@ -160,7 +160,8 @@ class SafetyModels(NamedTuple):
         """Offline data (cached) and the fitted models."""
         info = envs.safety_info(cfg.task.name)
         noise = Zonotope(info.noise_center.double(), info.noise_generators.double())
-        options = {"translation_invariant_dims": info.position_dims, "max_generators": cfg.method.max_generators}
+        options = {"translation_invariant_dims": info.position_dims, "max_generators": cfg.method.max_generators,
+                   "method": cfg.method.get("reach", "local")}
         reach = DataDrivenReach.from_data(offline_data(cfg.task, cache_dir, cfg.seed), noise, **options)
         local = None
         if cfg.task.get("local") is not None:

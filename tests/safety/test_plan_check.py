@@ -151,3 +151,19 @@ def test_failsafe_validates_its_arguments():
         Failsafe(torch.zeros(2), 3, policy=5)
     brake = Failsafe(torch.tensor([0.5, -0.5]), 3)
     assert torch.equal(brake.actions(torch.zeros(4, 6)), torch.tensor([[0.5, -0.5]] * 4))
+
+
+def test_local_model_of_a_restricted_domain_claims_nothing_outside_it(system):
+    """A local (cell) model fitted on low speeds: plans that speed up past the domain are unverified."""
+    x, xp, u = system.offline_data(2000, torch.Generator().manual_seed(0))
+    inf = float("inf")
+    domain = (torch.tensor([-inf, -inf, -0.4, -0.4, -inf, -inf]), torch.tensor([inf, inf, 0.4, 0.4, inf, inf]))
+    slow = DataDrivenReach.fit(x, xp, u, system.noise, translation_invariant_dims=(0, 1), max_generators=24,
+                               domain=domain)
+    checker = make_checker(slow, system, policy=False, stop_tolerance=None, stop_slack=0.2)
+    x0 = torch.zeros(1, 4, dtype=torch.float64)
+    far = torch.full((1, 1, 2), 50.0, dtype=torch.float64), torch.eye(2, dtype=torch.float64).view(1, 1, 2, 2)
+    mask = torch.ones(1, 1, dtype=torch.bool)
+    faster = torch.tensor([[[1.0, 0.0]] * N_PLAN], dtype=torch.float64)  # 5 x 0.1 s x 1 m/s^2 = 0.5 m/s
+    assert not checker.evaluate(x0, faster, *far, mask).covered.item()
+    assert checker.evaluate(x0, torch.zeros(1, N_PLAN, 2, dtype=torch.float64), *far, mask).safe.item()

@@ -300,6 +300,11 @@ class PlanChecker:
             self._plan_checker(sets, obstacle_generators)
             stop_room = (self.stop_slack.expand(centers.shape[0], -1) if self.stop_slack is not None else
                          self.stop_tolerance - _take(sets.generators[:, -1].abs().sum(-1), self._stop_index))
+            if self.reach.bounded_domain:  # every step starts inside the model's domain
+                radius = sets.generators.abs().sum(-1)
+                starts = torch.cat((x0.to(centers).unsqueeze(1), centers[:, :-1]), dim=1)
+                radius = torch.cat((torch.zeros_like(radius[:, :1]), radius[:, :-1]), dim=1)
+                covered = covered & self.reach._boxes_in_domain(starts, radius, actions)
         else:
             actions, centers = self.rollout(x0, plan)
             self.checker(obstacle_generators)
