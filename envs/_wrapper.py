@@ -1,4 +1,5 @@
-"""TorchRL wrapper of the dm_control tasks: float32, nested ``obstacles``, bool flags."""
+"""TorchRL wrapper of the dm_control tasks: float32 for learning, float64 on the safety path, nested
+``obstacles``, bool flags."""
 from __future__ import annotations
 
 import mujoco
@@ -16,8 +17,16 @@ class RenderingUnavailable(RuntimeError):
     """Raised by :meth:`SafetyTaskEnv.render` when no OpenGL backend can be created."""
 
 
+SAFETY_KEYS = ("state",)
+"""Entries kept in float64 (with every ``obstacles`` entry): what the safety layer checks."""
+
+
 def _to_float32(spec):
     return spec.clone().to(torch.float32) if spec.dtype == torch.float64 else spec
+
+
+def _keeps_float64(key: str) -> bool:
+    return key in SAFETY_KEYS or key.startswith(_OBSTACLE_PREFIX)
 
 
 class SafetyTaskEnv(DMControlWrapper):
@@ -25,14 +34,16 @@ class SafetyTaskEnv(DMControlWrapper):
 
     Compared with ``DMControlWrapper`` followed by ``DoubleToFloat`` and a rename
     transform, it writes float32 tensors and the nested ``obstacles`` entry while
-    reading the dm_control observation, which halves the per-step overhead.
+    reading the dm_control observation, which halves the per-step overhead. The robot
+    ``state`` and the ``obstacles`` stay float64, as the task computes them, so the safety
+    layer checks exactly what the task measured (no float32 rounding on the safety path).
 
     Output keys (``d`` position dim, ``K`` obstacle capacity, ``p`` generators):
     ``observation [obs_dim]``, ``state [n]``, ``obstacles`` (``center [K, d]``,
     ``generators [K, d, p]``, ``mask [K]`` bool), ``collision [1]`` bool,
     ``goal_reached [1]`` bool, ``speed [1]``, ``reward [1]``, ``done``/``terminated``/
     ``truncated [1]`` bool and, with ``from_pixels=True``, ``pixels [H, W, 3]`` uint8.
-    Float entries are float32.
+    Float entries are float32, except ``state`` and ``obstacles`` (float64).
 
     Args:
         env: a ``dm_control.rl.control.Environment`` whose task is a
@@ -54,7 +65,7 @@ class SafetyTaskEnv(DMControlWrapper):
         nested = Composite(shape=self.batch_size, device=self.device)
         obstacles = Composite(shape=self.batch_size, device=self.device)
         for key, spec in self.observation_spec.items():
-            spec = _to_float32(spec)
+            spec = spec if _keeps_float64(key) else _to_float32(spec)
             if key.startswith(_OBSTACLE_PREFIX):
                 obstacles[key[len(_OBSTACLE_PREFIX) :]] = spec
             else:
@@ -74,7 +85,8 @@ class SafetyTaskEnv(DMControlWrapper):
     def read_obs(self, observations):
         out, obstacles = {}, {}
         for key, value in observations.items():
-            array = np.array(value, dtype=np.float32 if value.dtype == np.float64 else value.dtype)
+            keep = _keeps_float64(key) or value.dtype != np.float64
+            array = np.array(value, dtype=value.dtype if keep else np.float32)
             if key.startswith(_OBSTACLE_PREFIX):
                 obstacles[key[len(_OBSTACLE_PREFIX) :]] = torch.from_numpy(array)
             else:

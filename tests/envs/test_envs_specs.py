@@ -32,9 +32,9 @@ def test_keys_shapes_and_dtypes(name):
     step = td[-1]["next"]
     expected = {
         "observation": ((OBSERVATION_DIM[name],), torch.float32),
-        "state": ((info.state_dim,), torch.float32),
-        ("obstacles", "center"): ((k, d), torch.float32),
-        ("obstacles", "generators"): ((k, d, GENERATORS_PER_OBSTACLE[d]), torch.float32),
+        "state": ((info.state_dim,), torch.float64),
+        ("obstacles", "center"): ((k, d), torch.float64),
+        ("obstacles", "generators"): ((k, d, GENERATORS_PER_OBSTACLE[d]), torch.float64),
         ("obstacles", "mask"): ((k,), torch.bool),
         "collision": ((1,), torch.bool),
         "goal_reached": ((1,), torch.bool),
