@@ -187,7 +187,8 @@ class BRSLSafetyLayer(Transform):
 
     def _plan_checker(self, reach: DataDrivenReach, low: Tensor, high: Tensor) -> PlanChecker:
         return PlanChecker(reach, self.failsafe, self.horizon, stop_dims=self.stop_dims,
-                           stop_tolerance=self.stop_tolerance, stop_slack=self.stop_slack, action_low=low, action_high=high,
+                           stop_tolerance=self.stop_tolerance, stop_slack=self.stop_slack, action_low=low,
+                           action_high=high,
                            position_dims=self.position_dims, set_generators=self.set_generators,
                            margin=self.margin, action_dtype=self._action_dtype())
 
@@ -427,7 +428,8 @@ class BRSLSafetyLayer(Transform):
     def _local_subset(self, idx: Tensor, obstacle_generators: Tensor, selected: Tensor) -> PlanChecker:
         """The local checker for the envs ``idx`` (its facet table cached for the whole batch)."""
         local = self.local_checker
-        local.checker(obstacle_generators)
+        if not local.plan_dependent:
+            local.checker(obstacle_generators)
         return local if bool(selected.all()) else local._subset(idx)
 
     def _hold(self, like: Tensor) -> Tensor:

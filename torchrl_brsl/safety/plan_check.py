@@ -8,10 +8,9 @@ import torch
 from torch import Tensor
 
 from torchrl_brsl.collision import ZonotopeCollisionChecker
-from torchrl_brsl.reach import DataDrivenReach
+from torchrl_brsl.reach import DataDrivenReach, stack_steps
 from torchrl_brsl.safety.failsafe import Failsafe
-from torchrl_brsl.sets import Zonotope, pad_generators, reduce_girard
-from torchrl_brsl.sets._checks import skip_value_checks
+from torchrl_brsl.sets import Zonotope, reduce_girard
 
 
 class PlanEvaluation(NamedTuple):
@@ -45,10 +44,11 @@ class PlanChecker:
     For a global model (``DataDrivenReach.fit(method="global")``) the generators of every
     reachable set from a measured state do not depend on the plan, so their projections onto
     the obstacle space are reduced once here, and the facet table of each (set, obstacle)
-    pair is rebuilt only when the obstacles change. For a local model (the default) the sets
-    are computed per plan and the facet table is built per check. With open-loop braking (no braking policy) the centres of all ``T``
-    sets are one affine map of the measured state and the plan, precomputed per plan length,
-    so a check costs one product for the centres and one for the collision values.
+    pair is rebuilt only when the obstacles change; with open-loop braking (no braking
+    policy) the centres of all ``T`` sets are one affine map of the measured state and the
+    plan, precomputed per plan length, so a check costs one product for the centres and one
+    for the collision values. For a local model (the default) the sets depend on the plan:
+    they are computed step by step and the facet table is built per check.
 
     Args:
         reach: the fitted reachability model.
@@ -91,9 +91,9 @@ class PlanChecker:
         self.action_high = action_high.to(dtype)
         errors = reach.error_generators_sequence(self.horizon)  # [T, n, p]
         d = len(self.position_dims)
-        self.set_generators = reduce_girard(errors[:, self.position_dims], set_generators or 4 * d)  # [T, d, ps]
-        self.plan_dependent = reach.plan_dependent
         self.set_width = set_generators or 4 * d
+        self.set_generators = reduce_girard(errors[:, self.position_dims], self.set_width)  # [T, d, ps]
+        self.plan_dependent = reach.plan_dependent
         self.stop_radius = errors[-1, self.stop_dims].abs().sum(-1)  # [len(stop_dims)], global model
         if (stop_tolerance is None) == (stop_slack is None):
             raise ValueError("give exactly one of `stop_tolerance` and `stop_slack`")
@@ -135,15 +135,14 @@ class PlanChecker:
         Avoids rebuilding the facet table when only some envs of a batch are checked again.
         """
         sub = copy.copy(self)
-        if self._checker is not None:
+        if self._checker is not None and not self.plan_dependent:  # plan-dependent tables are rebuilt per check
             table = type(self._checker.table)(*(t[index] for t in self._checker.table))
             checker = copy.copy(self._checker)
             checker.table = table
             checker.batch_shape = table.supports.shape[:-1]
             sub._checker = checker
             sub._columns = tuple(c[index] for c in self._columns)
-            if self._obstacle_generators is not None:
-                sub._obstacle_generators = self._obstacle_generators[index]
+            sub._obstacle_generators = self._obstacle_generators[index]
         return sub
 
     def affine(self, plan_steps: int, dtype: torch.dtype | None = None,
@@ -264,10 +263,7 @@ class PlanChecker:
             actions.append(u.unsqueeze(1))
             centers.append(center)
             gens.append(generators)
-        width = max(g.shape[-1] for g in gens)
-        with skip_value_checks():
-            sets = Zonotope(torch.stack(centers, 1), torch.stack([pad_generators(g, width) for g in gens], 1))
-        return torch.cat(actions, dim=1), sets, covered
+        return torch.cat(actions, dim=1), stack_steps(centers, gens), covered
 
     def _hold(self, like: Tensor) -> Tensor:
         """The open-loop braking action, clipped and rounded to the action dtype: ``[m]``."""
