@@ -167,3 +167,23 @@ def test_local_model_of_a_restricted_domain_claims_nothing_outside_it(system):
     faster = torch.tensor([[[1.0, 0.0]] * N_PLAN], dtype=torch.float64)  # 5 x 0.1 s x 1 m/s^2 = 0.5 m/s
     assert not checker.evaluate(x0, faster, *far, mask).covered.item()
     assert checker.evaluate(x0, torch.zeros(1, N_PLAN, 2, dtype=torch.float64), *far, mask).safe.item()
+
+
+def test_flat_plan_dependent_sets_against_empty_obstacle_slots_never_raise(system):
+    """A local model whose first set is flat in position (no model error, no position noise,
+    as on a velocity-commanded robot) against a masked slot with zero generators: the check
+    must still answer (it raised mid-episode that the closed form does not apply)."""
+    x, xp, u = system.offline_data(500, torch.Generator().manual_seed(0))
+    velocity_noise = Zonotope(torch.zeros(4, dtype=torch.float64), torch.diag(system.noise_half_width * torch.tensor(
+        [0.0, 0.0, 1.0, 1.0], dtype=torch.float64)))
+    flat = DataDrivenReach.fit(x, xp, u, velocity_noise, translation_invariant_dims=(0, 1), max_generators=24)
+    flat.cell_errors.zero_()
+    checker = make_checker(flat, system, policy=False, stop_tolerance=None, stop_slack=0.2)
+    c, g, mask, _ = box([0.5, -0.2], [0.7, 0.2])
+    centers = torch.cat((c, torch.zeros(1, 1, 2, dtype=torch.float64)), dim=1)
+    generators = torch.cat((g, torch.zeros(1, 1, 2, 2, dtype=torch.float64)), dim=1)
+    masks = torch.tensor([[True, False]])
+    x0 = torch.zeros(1, 4, dtype=torch.float64)
+    evaluation = checker.evaluate(x0, torch.zeros(1, N_PLAN, 2, dtype=torch.float64), centers, generators, masks)
+    assert evaluation.safe.item()
+    assert torch.isinf(evaluation.values[..., 1]).all()

@@ -13,6 +13,10 @@ from torchrl_brsl.safety.failsafe import Failsafe
 from torchrl_brsl.sets import Zonotope, reduce_girard
 
 
+MIN_SET_RADIUS = 1e-6
+"""Half-width (state units) of the box added to every plan-dependent set's obstacle-space projection."""
+
+
 class PlanEvaluation(NamedTuple):
     """What :meth:`PlanChecker.evaluate` returns for a batch of ``B`` plans.
 
@@ -335,9 +339,16 @@ class PlanChecker:
         return evaluation, (Gauge(products, best) if detail else None)
 
     def _plan_checker(self, sets: Zonotope, obstacle_generators: Tensor) -> None:
-        """Facet table of plan-dependent sets ``[B, T]`` against the obstacles ``[B, K, d, p]``."""
-        projected = reduce_girard(_take(sets.generators.transpose(-1, -2), self._position_index).transpose(-1, -2),
-                                  self.set_width)  # [B, T, d, ps]
+        """Facet table of plan-dependent sets ``[B, T]`` against the obstacles ``[B, K, d, p]``.
+
+        Each projected set is enlarged by a box of half-width :data:`MIN_SET_RADIUS` (a larger
+        set only makes the check stricter) so that ``Z(0, [G_set, G_obstacle])`` is always
+        full-dimensional, also against the zero generators of empty obstacle slots when a
+        step's sets are flat in some direction (the closed form would refuse the pair).
+        """
+        positions = _take(sets.generators.transpose(-1, -2), self._position_index).transpose(-1, -2)
+        floor = torch.diag_embed(positions.new_full(positions.shape[:-1], MIN_SET_RADIUS))
+        projected = reduce_girard(torch.cat((positions, floor), dim=-1), self.set_width)  # [B, T, d, ps]
         self._checker = ZonotopeCollisionChecker(projected.unsqueeze(-3), obstacle_generators.unsqueeze(-4))
         self._columns = tuple(w.contiguous() for w in self._checker.table.weights.unbind(-1))
         self._obstacle_generators = None  # the cached table no longer matches any obstacle batch
