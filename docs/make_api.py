@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 
 PACKAGES = ["torchrl_brsl.sets", "torchrl_brsl.reach", "torchrl_brsl.collision", "torchrl_brsl.safety",
-            "torchrl_brsl.models", "torchrl_brsl.planning", "torchrl_brsl.modules", "envs"]
+            "torchrl_brsl.models", "torchrl_brsl.planning", "torchrl_brsl.modules", "torchrl_brsl.baselines", "envs"]
 OUT = Path(__file__).with_name("api.md")
 
 
