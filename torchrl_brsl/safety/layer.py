@@ -1,7 +1,6 @@
 """``BRSLSafetyLayer``: the TorchRL transform that makes every executed action safe."""
 from __future__ import annotations
 
-import math
 import time
 from typing import Callable, Sequence
 
@@ -17,18 +16,22 @@ from torchrl_brsl.safety.adjust import FacetQPAdjuster, GradientAdjuster
 from torchrl_brsl.safety.failsafe import Failsafe
 from torchrl_brsl.safety.plan_check import PlanChecker
 
+INPUT_LIMIT = 1e100
+"""Magnitude from which an entry of the state, proposal or a real obstacle counts as invalid (like NaN/inf)."""
+
 ADJUSTERS = {"gradient": GradientAdjuster, "facet_qp": FacetQPAdjuster}
 
 DIAGNOSTICS = {
-    "intervened": torch.bool,  # the proposal was not executed as proposed
+    "intervened": torch.bool,  # the executed action differs from the proposal (unsafe, clamped or invalid)
     "failsafe": torch.bool,  # no safe plan found: braking from the state, or the previous safe plan
     "local": torch.bool,  # the executed plan was verified by the local (restricted-domain) model
     "unverified_hold": torch.bool,  # beyond every verified plan: the braking policy holds (paper Assumption 1)
-    "invalid_input": torch.bool,  # NaN/inf in the state, proposal or obstacles
+    "invalid_input": torch.bool,  # NaN/inf (or beyond INPUT_LIMIT) in the state, proposal or a real obstacle,
+                                  # or a proposal outside the action bounds
     "out_of_data": torch.bool,  # the proposal's sets left the region the offline data cover: not verifiable
     "min_collision_value": torch.float64,  # min v* of the (adjusted) proposal's sets (inf: no obstacle)
     "adjust_iterations": torch.int64,
-    "compute_time": torch.float64,  # seconds spent in the layer this step
+    "compute_time": torch.float64,  # seconds of the layer's one batched call this step (the same for every env)
 }
 
 
@@ -56,8 +59,20 @@ class BRSLSafetyLayer(Transform):
     Safety (paper Theorem 1): every executed action begins a sequence whose reachable sets,
     braking tail included, were verified collision-free and end stopped; so under the
     assumptions of :class:`DataDrivenReach` and paper Assumption 1 the robot never collides,
-    whatever the policy proposed. NaN/inf inputs never reach the robot: the previous safe
-    plan continues and ``invalid_input`` is flagged.
+    whatever the policy proposed.
+
+    Inputs. Every entry the layer reads is checked against the others and against the model:
+    ``state`` ``[..., n]`` (the model's ``state_dim``), ``action`` ``[..., m]`` and ``plan``
+    ``[..., 1..n_plan, m]`` (its ``action_dim``), the obstacles' ``center`` ``[..., K, d]``,
+    ``generators`` ``[..., K, d, p]`` and ``mask`` ``[..., K]`` (one ``K``, ``d`` the obstacle
+    space; ``K = 0`` is allowed), floating-point dtypes and a bool mask. The parent env's specs
+    are checked when the layer is appended, the TensorDict at every reset and step; a wrong
+    structure raises a ``ValueError`` naming the key, its shape and the expected one. Wrong
+    *values* never raise: NaN, inf or magnitudes beyond :data:`INPUT_LIMIT` in the state, the
+    proposal or a real (unmasked) obstacle never reach the robot (the previous safe plan
+    continues, ``invalid_input`` and ``failsafe`` are flagged); a proposal outside the action
+    bounds is clamped, the clamped plan verified like any other, and ``invalid_input``
+    flagged. ``intervened`` is set whenever the executed action differs from the proposal.
 
     Keys written. TorchRL's collector stores the root TensorDict *before* this transform's
     inverse pass, so the executed action and diagnostics are written to the ``"next"``
@@ -66,7 +81,9 @@ class BRSLSafetyLayer(Transform):
     also in ``full_state_spec``: the fallback plan and how many of its leading actions are
     verified; once none is left the braking policy acts on the measured state), and under ``diagnostics_key`` the entries of
     :data:`DIAGNOSTICS` ``[..., 1]``. With ``penalty > 0`` the reward is reduced by
-    ``penalty`` whenever the proposal was unsafe (the paper's penalty).
+    ``penalty`` whenever the layer intervened (the paper's penalty for unsafe proposals; a
+    proposal clamped into the action bounds counts too). ``compute_time`` is the duration of
+    the layer's one batched call, the same value for every env of a batch.
 
     Batched envs: put the layer outside a ``SerialEnv``/``ParallelEnv`` so one batched
     computation serves every env; partial resets only reset the safe plans of the envs
@@ -130,6 +147,20 @@ class BRSLSafetyLayer(Transform):
                                         != (reach.state_dim, reach.action_dim)):
             raise ValueError(f"`local_reach` must be a DataDrivenReach with {reach.state_dim} states and "
                              f"{reach.action_dim} actions, like `reach`")
+        n, m = reach.state_dim, reach.action_dim
+        for name, dims in (("stop_dims", stop_dims), ("position_dims", position_dims)):
+            if dims is not None and any(not -n <= int(dim) < n for dim in dims):
+                raise ValueError(f"`{name}`={list(dims)} names dims outside the model's {n} states")
+        for name, bound in (("action_low", action_low), ("action_high", action_high)):
+            if bound is not None:
+                bound = torch.as_tensor(bound)
+                if tuple(bound.shape) != (m,) or not bool(torch.isfinite(bound).all()):
+                    raise ValueError(f"`{name}` must be {m} finite values (the model's action_dim), got shape "
+                                     f"{tuple(bound.shape)}")
+        if action_low is not None and action_high is not None and bool(
+                (torch.as_tensor(action_low) > torch.as_tensor(action_high)).any()):
+            raise ValueError(f"`action_low`={list(map(float, action_low))} exceeds "
+                             f"`action_high`={list(map(float, action_high))}")
         self.reach = reach
         self.local_reach = local_reach
         self.failsafe = failsafe
@@ -173,6 +204,8 @@ class BRSLSafetyLayer(Transform):
             dtype = self.reach.state_matrix.dtype
             self._checker = self._plan_checker(self.reach, torch.as_tensor(low, dtype=dtype),
                                                torch.as_tensor(high, dtype=dtype))
+            # a proposal counts as out of bounds beyond rounding (the bounds may be float32)
+            self._bound_tolerance = 1e-6 * (self._checker.action_high - self._checker.action_low).clamp_min(1.0)
         return self._checker
 
     @property
@@ -195,6 +228,46 @@ class BRSLSafetyLayer(Transform):
     def _hold_plan(self, batch: torch.Size, like: Tensor) -> Tensor:
         hold = self.failsafe.hold_action.to(device=like.device, dtype=torch.float64)
         return hold.expand(*batch, self.horizon, hold.shape[-1]).clone()
+
+    def set_container(self, container) -> None:
+        """Appended to an env: its state, action and obstacle specs are checked against the model."""
+        super().set_container(container)
+        self._check_specs()
+
+    def _check_specs(self) -> None:
+        """At construction: the parent env's state, action and obstacle specs against the model."""
+        try:
+            parent = self.parent
+            observations = parent.full_observation_spec if parent is not None else None
+            actions = parent.full_action_spec if parent is not None else None
+        except Exception:  # an env that cannot describe itself yet: checked on the first step instead
+            return
+        if observations is None:
+            return
+        batch = tuple(parent.batch_size)
+        n, m = self.reach.state_dim, self.reach.action_dim
+        shapes = {}
+        for key, spec in ((self.state_key, observations), (self.action_key, actions),
+                          *((_join(self.obstacles_key, name), observations) for name in ("center", "generators", "mask"))):
+            try:
+                shapes[key] = spec[key]
+            except KeyError:
+                pass
+        if self.state_key in shapes:
+            _check_structure(self.state_key, shapes[self.state_key].zero(), batch, (n,),
+                             f"the model's state_dim={n}", dtype="any")
+        if self.action_key in shapes:
+            _check_structure(self.action_key, shapes[self.action_key].zero(), batch, (m,),
+                             f"the model's action_dim={m}", dtype="any")
+        keys = [_join(self.obstacles_key, name) for name in ("center", "generators", "mask")]
+        if all(key in shapes for key in keys):
+            d = len(self.position_dims) if self.position_dims is not None else len(self.reach.translation_invariant_dims)
+            center, generators, mask = (shapes[key].zero() for key in keys)
+            _check_structure(keys[0], center, batch, (None, d), f"[K obstacles, d={d}] (the obstacle space)",
+                             dtype="any")
+            reference = f"K={center.shape[-2]} obstacles, as `{_name(keys[0])}` {tuple(center.shape)}"
+            _check_structure(keys[1], generators, batch, (center.shape[-2], d, None), reference, dtype="any")
+            _check_structure(keys[2], mask, batch, (center.shape[-2],), reference, dtype="any")
 
     # ----------------------------------------------------------------- specs
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
@@ -235,7 +308,9 @@ class BRSLSafetyLayer(Transform):
     # ----------------------------------------------------------------- reset / step
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
         batch = tensordict_reset.batch_size
-        state = tensordict_reset.get(self.state_key)
+        state = _entry(tensordict_reset, self.state_key, "state")
+        _check_structure(self.state_key, state, tuple(batch), (self.reach.state_dim,),
+                         f"the model's state_dim={self.reach.state_dim}")
         fresh = self._hold_plan(batch, state)
         previous = tensordict.get(self.safe_plan_key, None) if tensordict is not None else None
         reset = tensordict.get("_reset", None) if tensordict is not None else None
@@ -254,24 +329,29 @@ class BRSLSafetyLayer(Transform):
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
         start = time.perf_counter()
         batch = tensordict.batch_size
-        state = tensordict.get(self.state_key)
-        action = tensordict.get(self.action_key)
+        state, action, proposal, centers, generators, mask = self._read_inputs(tensordict)
         safe_plan = tensordict.get(self.safe_plan_key, None)
         safe_steps = tensordict.get(self.safe_steps_key, None)
         if safe_plan is None:
             safe_plan = self._hold_plan(batch, state)
             safe_steps = torch.zeros(*batch, 1, dtype=torch.int64, device=state.device)
-        proposal = tensordict.get(self.plan_key, None)
         if proposal is None:
             proposal = action.unsqueeze(-2)
-        obstacles = tensordict.get(self.obstacles_key)
+        # the plan is verified as the robot will receive it: rounded to the action dtype
+        action_dtype = self._action_dtype() if action is None else action.dtype
+        proposal = proposal.to(action_dtype)
+        n_envs = batch.numel()
         out = self._safe_step(
-            state.reshape(-1, state.shape[-1]), proposal.reshape(-1, *proposal.shape[-2:]),
-            safe_plan.reshape(-1, *safe_plan.shape[-2:]), safe_steps.reshape(-1), obstacles.get("center"),
-            obstacles.get("generators"), obstacles.get("mask"), start)
+            state.reshape(n_envs, state.shape[-1]), proposal.reshape(n_envs, *proposal.shape[-2:]),
+            safe_plan.reshape(n_envs, *safe_plan.shape[-2:]), safe_steps.reshape(n_envs),
+            centers.reshape(n_envs, *centers.shape[-2:]), generators.reshape(n_envs, *generators.shape[-3:]),
+            mask.reshape(n_envs, mask.shape[-1]), start)
         executed, new_safe_plan, new_safe_steps, diagnostics = out
-        executed = executed.reshape(*batch, -1)
-        tensordict.set(self.action_key, executed.to(action.dtype))
+        executed = executed.reshape(*batch, -1).to(action_dtype)
+        # not executed as proposed: unsafe, clamped into the bounds, or invalid (NaN never equals)
+        differs = (executed != proposal[..., 0, :]).any(-1).reshape(-1)
+        diagnostics["intervened"] = diagnostics["intervened"] | differs
+        tensordict.set(self.action_key, executed)
         tensordict.set(self.safe_plan_key, new_safe_plan.reshape(*batch, *new_safe_plan.shape[-2:]))
         tensordict.set(self.safe_steps_key, new_safe_steps.reshape(*batch, 1))
         for name, value in diagnostics.items():
@@ -279,6 +359,42 @@ class BRSLSafetyLayer(Transform):
         tensordict.set((self.diagnostics_key, "compute_time"),
                        torch.full((*batch, 1), time.perf_counter() - start, dtype=torch.float64))
         return tensordict
+
+    # ----------------------------------------------------------------- input validation
+    def _read_inputs(self, tensordict: TensorDictBase):
+        """Every entry the layer reads, its structure checked against the others and the model.
+
+        A wrong structure (shape, dtype, a missing entry) raises a ``ValueError`` naming the key
+        and both shapes; wrong *values* (NaN, inf, out of bounds) are handled by the safety
+        logic (a verified action, ``invalid_input`` flagged). Returns ``(state [*B, n],
+        action [*B, m] (or None beside a plan), plan [*B, P, m] or None, center [*B, K, d], generators [*B, K, d, p],
+        mask [*B, K])``.
+        """
+        batch = tuple(tensordict.batch_size)
+        n, m, d = self.reach.state_dim, self.reach.action_dim, len(self.checker.position_dims)
+        state = _entry(tensordict, self.state_key, "state")
+        _check_structure(self.state_key, state, batch, (n,), f"the model's state_dim={n}")
+        plan = tensordict.get(self.plan_key, None)
+        action = _entry(tensordict, self.action_key, "action") if plan is None else tensordict.get(self.action_key, None)
+        if action is not None:
+            _check_structure(self.action_key, action, batch, (m,), f"the model's action_dim={m}")
+        if plan is not None:
+            _check_structure(self.plan_key, plan, batch, (None, m), f"[n_plan steps, action_dim={m}]")
+            if not 1 <= plan.shape[-2] <= self.n_plan:
+                raise ValueError(f"`{_name(self.plan_key)}` has {plan.shape[-2]} steps (shape {tuple(plan.shape)}); "
+                                 f"it must have 1 to n_plan={self.n_plan}")
+        _entry(tensordict, self.obstacles_key, "obstacles")
+        keys = {name: _join(self.obstacles_key, name) for name in ("center", "generators", "mask")}
+        center, generators, mask = (_entry(tensordict, keys[name], f"obstacle {name}")
+                                    for name in ("center", "generators", "mask"))
+        _check_structure(keys["center"], center, batch, (None, d), f"[K obstacles, d={d}] (the obstacle space)")
+        k = center.shape[-2]
+        reference = f"K={k} obstacles, as `{_name(keys['center'])}` {tuple(center.shape)}"
+        _check_structure(keys["generators"], generators, batch, (k, d, None), reference)
+        _check_structure(keys["mask"], mask, batch, (k,), reference, dtype="bool")
+        if generators.shape[-1] == 0:  # point obstacles: one zero generator keeps the facet table defined
+            generators = generators.new_zeros(*generators.shape[:-1], 1)
+        return state, action, plan, center, generators, mask
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         next_tensordict.set(self.safe_action_key, tensordict.get(self.action_key))
@@ -306,26 +422,33 @@ class BRSLSafetyLayer(Transform):
         checker = self.checker
         dtype = self.reach.state_matrix.dtype
         n_envs = state.shape[0]
-        obstacle_centers = self._obstacle_tensor("center", obstacle_centers, n_envs, 2).to(dtype)
-        obstacle_generators = self._obstacle_tensor("generators", obstacle_generators, n_envs, 3).to(dtype)
-        obstacle_mask = self._obstacle_tensor("mask", obstacle_mask, n_envs, 1).bool()
+        obstacle_centers = obstacle_centers.to(dtype)
+        obstacle_generators = obstacle_generators.to(dtype)
         if proposal.shape[-2] > self.n_plan:
-            raise ValueError(f"`{self.plan_key}` has {proposal.shape[-2]} steps, more than n_plan={self.n_plan}")
+            raise ValueError(f"`{_name(self.plan_key)}` has {proposal.shape[-2]} steps, more than n_plan={self.n_plan}")
         x0 = state.to(dtype)
         plan = proposal.to(dtype)
-        # one cheap test for the usual case: a finite total means every entry is finite
-        total = float(x0.sum()) + float(plan.sum()) + float(obstacle_centers.sum()) + float(obstacle_generators.sum())
-        if math.isfinite(total):
+        # one cheap test for the usual case: every magnitude below INPUT_LIMIT (NaN fails it)
+        parts = (x0, plan, obstacle_centers, obstacle_generators)
+        peak = float(torch.stack([t.abs().amax() for t in parts if t.numel()]).amax())  # amax propagates NaN
+        if peak < INPUT_LIMIT:
             valid = None
-        else:
-            any_obstacle = obstacle_mask.any(-1)
-            valid = (torch.isfinite(x0).all(-1) & torch.isfinite(plan).flatten(1).all(-1)
-                     & (torch.isfinite(obstacle_centers).flatten(1).all(-1) | ~any_obstacle)
-                     & (torch.isfinite(obstacle_generators).flatten(1).all(-1) | ~any_obstacle))
+        else:  # per env; an obstacle slot counts only when its mask is set
+            slot_ok = ((obstacle_centers.abs() < INPUT_LIMIT).all(-1)
+                       & (obstacle_generators.abs() < INPUT_LIMIT).flatten(-2).all(-1))  # [B, K]
+            valid = ((x0.abs() < INPUT_LIMIT).all(-1) & (plan.abs() < INPUT_LIMIT).flatten(1).all(-1)
+                     & (slot_ok | ~obstacle_mask).all(-1))
             x0 = torch.where(valid.unsqueeze(-1), x0, torch.zeros_like(x0))
             plan = torch.where(valid.view(-1, 1, 1), plan, torch.zeros_like(plan))
-            obstacle_centers = torch.nan_to_num(obstacle_centers)
-            obstacle_generators = torch.nan_to_num(obstacle_generators)
+            # unusable slots and the obstacles of invalid envs become empty slots (zeros, masked),
+            # so that the batched check stays finite; invalid envs' verdicts are never used
+            keep = slot_ok & valid.unsqueeze(-1)
+            obstacle_centers = torch.where(keep.unsqueeze(-1), obstacle_centers, 0.0)
+            obstacle_generators = torch.where(keep.unsqueeze(-1).unsqueeze(-1), obstacle_generators, 0.0)
+            obstacle_mask = obstacle_mask & keep
+        # a proposal beyond the action bounds is flagged and clamped; the clamped plan is verified
+        outside = ((plan < checker.action_low - self._bound_tolerance)
+                   | (plan > checker.action_high + self._bound_tolerance)).flatten(1).any(-1)
         plan = torch.clamp(plan, checker.action_low, checker.action_high)
 
         with torch.no_grad():
@@ -418,9 +541,10 @@ class BRSLSafetyLayer(Transform):
             "failsafe": ~accepted,
             "local": local,
             "unverified_hold": exhausted,
-            "invalid_input": torch.zeros_like(accepted) if valid is None else ~valid,
+            "invalid_input": outside if valid is None else outside | ~valid,
             "out_of_data": out_of_data,
-            "min_collision_value": values.flatten(1).amin(-1),
+            "min_collision_value": (values.flatten(1).amin(-1) if values.shape[-1] and values.shape[-2]
+                                    else values.new_full((n_envs,), float("inf"))),
             "adjust_iterations": iterations,
         }
         return executed, next_safe_plan, next_steps, diagnostics
@@ -439,22 +563,39 @@ class BRSLSafetyLayer(Transform):
             self._holds[key] = self.failsafe.hold_action.to(like)
         return self._holds[key]
 
-    def _obstacle_tensor(self, name: str, value: Tensor | None, n_envs: int, trailing: int) -> Tensor:
-        key = f"{self.obstacles_key}/{name}" if isinstance(self.obstacles_key, str) else (*self.obstacles_key, name)
-        if value is None:
-            raise ValueError(f"missing obstacle entry `{key}`")
-        d = len(self.checker.position_dims)
-        try:
-            value = value.reshape(n_envs, *value.shape[-trailing:])
-        except RuntimeError as err:
-            raise ValueError(f"`{key}` of shape {tuple(value.shape)} does not match the env batch") from err
-        if name == "center" and value.shape[-1] != d:
-            raise ValueError(f"`{key}` must be [..., K, {d}] (the obstacle space), got {tuple(value.shape)}")
-        if name == "generators" and value.shape[-2] != d:
-            raise ValueError(f"`{key}` must be [..., K, {d}, p], got {tuple(value.shape)}")
-        return value
-
 
 def _and_valid(mask: Tensor, valid: Tensor | None) -> Tensor:
     """``mask`` restricted to the envs with valid inputs (``valid`` None: all are valid)."""
     return mask if valid is None else valid & mask
+
+
+def _name(key: NestedKey) -> str:
+    """A TensorDict key as written in messages: ``"obstacles/center"``."""
+    return key if isinstance(key, str) else "/".join(key)
+
+
+def _join(key: NestedKey, name: str) -> NestedKey:
+    return (key, name) if isinstance(key, str) else (*key, name)
+
+
+def _entry(tensordict: TensorDictBase, key: NestedKey, what: str):
+    value = tensordict.get(key, None)
+    if value is None:
+        raise ValueError(f"the layer reads the {what} from `{_name(key)}`, which the TensorDict does not hold "
+                         f"(keys: {sorted(map(str, tensordict.keys(include_nested=True, leaves_only=True)))})")
+    return value
+
+
+def _check_structure(key: NestedKey, value, batch: tuple, trailing: tuple, why: str, dtype: str = "float") -> None:
+    """``value`` must be a tensor ``[*batch, *trailing]`` (``None``: any size) of a float (or bool) dtype."""
+    if not isinstance(value, Tensor):
+        raise ValueError(f"`{_name(key)}` must be a tensor, got {type(value).__name__}")
+    expected = (*batch, *trailing)
+    shape = tuple(value.shape)
+    if len(shape) != len(expected) or any(e is not None and e != s for e, s in zip(expected, shape)):
+        shown = "(" + ", ".join("*" if e is None else str(e) for e in expected) + ("," if len(expected) == 1 else "") + ")"
+        raise ValueError(f"`{_name(key)}` has shape {shape}, expected {shown}: env batch {batch}, then {why}")
+    if dtype == "bool" and value.dtype is not torch.bool:
+        raise ValueError(f"`{_name(key)}` must be a bool tensor (True for real obstacles), got {value.dtype}")
+    if dtype == "float" and not value.is_floating_point():
+        raise ValueError(f"`{_name(key)}` must be a floating-point tensor, got {value.dtype}")
