@@ -5,19 +5,10 @@ In MuJoCo each obstacle lives in its own mocap body (one geom per body), so a la
 is applied by moving mocap bodies and resizing geoms, without recompiling the model.
 
 Inflation by the robot footprint (robot collision geometry = a sphere of radius
-``rho`` whose centre is the robot position):
-
-* The robot touches obstacle ``O`` exactly when its centre lies in ``O ⊕ B(rho)``
-  (Minkowski sum with the ball; the ball is symmetric).
-* 2-D (ground robots; obstacles are taller than the robot sphere, so the planar
-  cross-section is what matters): ``B(rho) ⊆`` the regular octagon of inradius
-  ``rho`` (4 generators), so a box becomes ``box ⊕ octagon`` (2 + 4 generators).
-  A cylinder of radius ``R`` becomes the regular 12-gon of inradius ``R + rho``
-  (6 generators), which contains the disc ``B(R + rho)``.
-* 3-D: ``B(rho) ⊆ octagon(rho) × [-rho, rho]``, so a box becomes
-  ``box ⊕ octagon ⊕ rho·e_z`` (its z generator absorbs ``rho``: 3 + 4 generators)
-  and a cylinder the 12-gon prism of inradius ``R + rho`` and half-height
-  ``h + rho`` (6 + 1 generators).
+``rho`` whose centre is the robot position) is the library's public
+:mod:`torchrl_brsl.sets.obstacles` (``inflate_box``, ``inflate_disc``); see there for the
+construction. Ground robots use the planar cross-section (obstacles are taller than the
+robot sphere), aerial robots the 3-D prisms.
 
 Both containments are exact supersets, so every robot-centre position at which the
 robot geometry touches the obstacle geometry lies in the obstacle's zonotope.
@@ -28,6 +19,9 @@ from dataclasses import dataclass
 from typing import Callable, Sequence
 
 import numpy as np
+import torch
+
+from torchrl_brsl.sets.obstacles import inflate_box, inflate_disc, regular_polygon_generators
 
 #: number of generators of one obstacle zonotope, by position dimension
 GENERATORS_PER_OBSTACLE = {2: 6, 3: 7}
@@ -96,13 +90,6 @@ class Layout:
     path_radius: float | None = None
 
 
-def _planar_generators(n: int, inradius: float) -> np.ndarray:
-    """Generators ``[2, n]`` of the regular ``2n``-gon of the given inradius."""
-    angles = np.arange(n) * np.pi / n
-    half_side = inradius * np.tan(np.pi / (2 * n))
-    return half_side * np.stack([np.cos(angles), np.sin(angles)])
-
-
 def octagon_generators(inradius: float) -> np.ndarray:
     """Generators ``[2, 4]`` of the regular octagon with the given inradius.
 
@@ -110,7 +97,7 @@ def octagon_generators(inradius: float) -> np.ndarray:
         >>> octagon_generators(1.0).shape
         (2, 4)
     """
-    return _planar_generators(4, inradius)
+    return regular_polygon_generators(4, inradius).numpy()
 
 
 def dodecagon_generators(inradius: float) -> np.ndarray:
@@ -120,7 +107,7 @@ def dodecagon_generators(inradius: float) -> np.ndarray:
         >>> dodecagon_generators(1.0).shape
         (2, 6)
     """
-    return _planar_generators(6, inradius)
+    return regular_polygon_generators(6, inradius).numpy()
 
 
 def obstacle_zonotope(obstacle: Obstacle, robot_radius: float, dim: int) -> tuple[np.ndarray, np.ndarray]:
@@ -140,24 +127,17 @@ def obstacle_zonotope(obstacle: Obstacle, robot_radius: float, dim: int) -> tupl
         >>> c.shape, G.shape
         ((2,), (2, 6))
     """
-    hx, hy, hz = (float(v) for v in obstacle.half_size)
+    if dim not in (2, 3):
+        raise ValueError(f"dim must be 2 or 3, got {dim}")
+    center = torch.as_tensor(np.asarray(obstacle.pos, dtype=np.float64)[:dim])
+    half = torch.as_tensor(np.asarray(obstacle.half_size, dtype=np.float64))
     if obstacle.kind == "box":
-        cos, sin = np.cos(obstacle.yaw), np.sin(obstacle.yaw)
-        planar = np.concatenate(
-            [np.array([[hx * cos, -hy * sin], [hx * sin, hy * cos]]), octagon_generators(robot_radius)], axis=1
-        )
+        zonotope = inflate_box(center, half[:dim], robot_radius, yaw=obstacle.yaw)
     elif obstacle.kind == "cylinder":
-        planar = dodecagon_generators(hx + robot_radius)
+        zonotope = inflate_disc(center, float(half[0]), robot_radius, half_height=float(half[2]) if dim == 3 else None)
     else:
         raise ValueError(f"unknown obstacle kind {obstacle.kind!r}")
-    if dim == 2:
-        return np.asarray(obstacle.pos[:2], dtype=np.float64).copy(), planar
-    if dim != 3:
-        raise ValueError(f"dim must be 2 or 3, got {dim}")
-    generators = np.zeros((3, planar.shape[1] + 1))
-    generators[:2, :-1] = planar
-    generators[2, -1] = hz + robot_radius
-    return np.asarray(obstacle.pos, dtype=np.float64).copy(), generators
+    return zonotope.center.numpy().copy(), zonotope.generators.numpy().copy()
 
 
 def zonotope_batch(
