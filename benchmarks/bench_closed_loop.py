@@ -6,7 +6,8 @@ and the median position radius of the final reachable set of the executed plans.
 proposals (``n_plan = 1``) then the task's braking steps (``--n-brk`` for the uncapped
 servos), stop slack 0.15, the facet-QP adjuster, ``--steps`` offline transitions.
 
-Usage: ``python benchmarks/bench_closed_loop.py [--task point_boxes] [--steps 1000] [--episodes 40]``
+Usage: ``python benchmarks/bench_closed_loop.py [--task point_boxes] [--steps 1000] [--episodes 40]
+[--servo capped|uncapped|both] [--models global,local]``
 """
 from __future__ import annotations
 
@@ -82,6 +83,8 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=40)
     parser.add_argument("--episode-steps", type=int, default=60)
     parser.add_argument("--n-brk", type=int, default=None, help="braking steps of the uncapped servos")
+    parser.add_argument("--servo", choices=("capped", "uncapped", "both"), default="both")
+    parser.add_argument("--models", default="global,local", help="comma-separated: global, local")
     args = parser.parse_args()
     torch.set_num_threads(1)
     task = args.task
@@ -90,12 +93,13 @@ def main() -> None:
     print(f"{'servo':<10}{'model':<8}{'collisions':>12}{'speed':>8}{'vs none':>9}{'interv.':>9}{'failsafe':>9}"
           f"{'hold':>7}{'radius':>8}")
     uncapped = UNCAPPED.get(task, {"max_acceleration": None})
-    for servo, options, n_brk in (("capped", {}, info.n_brk), ("uncapped", uncapped, args.n_brk or info.n_brk)):
+    settings = (("capped", {}, info.n_brk), ("uncapped", uncapped, args.n_brk or info.n_brk))
+    for servo, options, n_brk in (s for s in settings if args.servo in (s[0], "both")):
         torch.manual_seed(0)
         data = collect_offline_data(envs.make(task, empty=True, seed=1, **options), args.steps)
         free = run(task, options, None, n_brk, args.episodes, args.episode_steps)
         print(f"{servo:<10}{'none':<8}{free['collisions']:>6}/{free['episodes']:<5}{free['speed']:>8.3f}")
-        for method in ("global", "local"):
+        for method in args.models.split(","):
             reach = DataDrivenReach.from_data(data, noise, translation_invariant_dims=info.position_dims,
                                               max_generators=30, method=method)
             row = run(task, options, reach, n_brk, args.episodes, args.episode_steps)
