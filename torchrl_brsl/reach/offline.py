@@ -11,7 +11,8 @@ from tqdm.auto import tqdm
 
 
 def collect_offline_data(env: EnvBase, steps: int = 500, *, state_key: NestedKey = "state",
-                         action_key: NestedKey = "action", policy=None, progress: bool = False) -> TensorDict:
+                         action_key: NestedKey = "action", policy=None, progress: bool = False,
+                         generator: torch.Generator | None = None) -> TensorDict:
     """Collect ``steps`` transitions of random inputs (paper Sec. IV "Setup").
 
     The robot is driven by uniformly random actions (or ``policy``) in an obstacle-free
@@ -24,8 +25,12 @@ def collect_offline_data(env: EnvBase, steps: int = 500, *, state_key: NestedKey
         state_key: where the robot state is.
         action_key: the action entry.
         policy: optional ``TensorDict -> TensorDict`` module writing ``action_key``; default
-            ``env.rand_action``.
+            ``env.rand_action`` (the global torch RNG), or with ``generator`` uniform actions
+            in the bounds of the action spec.
         progress: show a progress bar.
+        generator: the source of the random actions (``torch.Generator``), so that a
+            collection is reproducible without seeding the global RNG; the env's own
+            randomness (initial states, noise) comes from ``env.set_seed``.
 
     Returns:
         A TensorDict of batch ``[steps]`` with ``x_minus``, ``x_plus`` (``[steps, n]``) and
@@ -40,6 +45,13 @@ def collect_offline_data(env: EnvBase, steps: int = 500, *, state_key: NestedKey
         raise ValueError(f"`steps` must be positive, got {steps}")
     if env.batch_size != torch.Size([]):
         raise ValueError(f"`env` must be unbatched, got batch size {tuple(env.batch_size)}")
+    if policy is None and generator is not None:
+        spec = env.full_action_spec[action_key]
+        low, high = spec.space.low, spec.space.high
+
+        def policy(td):  # noqa: F811 - uniform in the action box, from ``generator``
+            u = torch.rand(low.shape, generator=generator, dtype=torch.float64)
+            return td.set(action_key, (low.double() + (high.double() - low.double()) * u).to(spec.dtype))
     x_minus, x_plus, u_minus = [], [], []
     td = env.reset()
     bar = tqdm(total=steps, desc="offline data", disable=not progress)

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import time
+import warnings
 from typing import Callable, Sequence
 
 import torch
@@ -97,7 +98,10 @@ class BRSLSafetyLayer(Transform):
         stop_tolerance: bound on ``|stop_dims|`` over the final reachable set (a float or one
             value per stop dim; see :class:`PlanChecker`).
         stop_slack: instead of ``stop_tolerance``: ``|final centre| <= stop_slack`` on the stop
-            dims, the tolerance being the final set's own radius plus the slack.
+            dims, the tolerance being the final set's own radius plus the slack. Without either,
+            ``stop_slack`` is :data:`~torchrl_brsl.safety.plan_check.DEFAULT_STOP_SLACK` (0.15); a
+            tolerance that reaches the top speed of the offline data warns (the check would
+            certify nothing, see :meth:`PlanChecker.vacuous_stop_dims`).
         action_low, action_high: ``[m]`` action bounds (default: the parent's action spec).
         position_dims: state dims of the obstacle space (default: the model's
             translation-invariant dims).
@@ -188,7 +192,7 @@ class BRSLSafetyLayer(Transform):
         self._local_checker: PlanChecker | None = None
         self._holds: dict = {}
         if action_low is not None and action_high is not None:
-            _ = self.checker  # validate the settings now rather than at the first step
+            _ = self.checker, self.local_checker  # validate the settings now rather than at the first step
 
     # ----------------------------------------------------------------- set-up
     @property
@@ -216,7 +220,54 @@ class BRSLSafetyLayer(Transform):
             low = torch.maximum(checker.action_low, self.local_reach.domain_low[n:].to(checker.action_low))
             high = torch.minimum(checker.action_high, self.local_reach.domain_high[n:].to(checker.action_high))
             self._local_checker = self._plan_checker(self.local_reach, low, high)
+            reason = self.local_model_unusable()
+            if reason:
+                warnings.warn(f"`local_reach` will never verify a plan: {reason}", UserWarning, stacklevel=2)
         return self._local_checker
+
+    def local_model_unusable(self) -> str:
+        """Why ``local_reach`` can never verify a plan, or ``""`` when it can.
+
+        A local plan counts only when every set it starts a step from stays in the local
+        domain. Braking from rest (state 0, clipped into the domain) is the easiest sequence
+        there is; if even its sets leave the domain (typically the model's own one-step error
+        is wider than the domain on a restricted dim, e.g. a speed cap of 0.1 m/s against a
+        set of radius 0.2 m/s), no plan ever will, and the reason names the step, the dim,
+        the set's interval and the domain's.
+        """
+        if self.local_reach is None:
+            return ""
+        local = self.local_checker
+        reach = self.local_reach
+        n, dtype = reach.state_dim, local.action_low.dtype
+        low, high = reach.domain_low.to(dtype), reach.domain_high.to(dtype)
+        rest = torch.zeros(1, n, dtype=dtype).clamp(low[:n], high[:n])
+        brake = torch.minimum(torch.maximum(self.failsafe.actions(rest), local.action_low), local.action_high)
+        brake = brake.to(local.action_dtype).to(dtype).unsqueeze(1)
+        no_obstacles = (rest.new_zeros(1, 0, len(local.position_dims)),
+                        rest.new_zeros(1, 0, len(local.position_dims), 1), torch.zeros(1, 0, dtype=torch.bool))
+        with torch.no_grad():
+            evaluation = local.evaluate(rest, brake, *no_obstacles)
+            if bool(evaluation.covered.all()):
+                return ""
+            if local.plan_dependent:
+                _, sets, _ = local.rollout_sets(rest, brake)
+                radius = sets.generators[0].abs().sum(-1)  # [T, n]
+            else:
+                radius = reach.error_generators_sequence(self.horizon).abs().sum(-1)
+        centers = evaluation.centers[0]
+        for j in range(self.horizon - 1):  # R_{j+1} must lie in the domain to start step j + 2
+            lo, hi = centers[j] - radius[j], centers[j] + radius[j]
+            outside = ((lo < low[:n]) | (hi > high[:n])).nonzero().flatten().tolist()
+            if outside:
+                d = outside[0]
+                return (f"braking from rest, its set after {j + 1} step(s) spans [{float(lo[d]):.3g}, "
+                        f"{float(hi[d]):.3g}] on state dim {d}, outside its domain [{float(low[d]):.3g}, "
+                        f"{float(high[d]):.3g}] (its one-step error alone is {float(radius[0, d]):.3g} wide there "
+                        "on each side). Widen the domain on that dim, collect more low-speed data, or drop "
+                        "`local_reach`.")
+        return ("braking from rest leaves its data (out_of_data): collect low-speed data that cover a robot at "
+                "rest under the braking action.")
 
     def _plan_checker(self, reach: DataDrivenReach, low: Tensor, high: Tensor) -> PlanChecker:
         return PlanChecker(reach, self.failsafe, self.horizon, stop_dims=self.stop_dims,

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import copy
+import warnings
 from typing import NamedTuple, Sequence
 
 import torch
@@ -12,6 +13,9 @@ from torchrl_brsl.reach import DataDrivenReach, stack_steps
 from torchrl_brsl.safety.failsafe import Failsafe
 from torchrl_brsl.sets import Zonotope, reduce_girard
 
+
+DEFAULT_STOP_SLACK = 0.15
+"""``stop_slack`` when neither it nor ``stop_tolerance`` is given (units of the stop dims, e.g. m/s)."""
 
 MIN_SET_RADIUS = 1e-6
 """Half-width (state units) of the box added to every plan-dependent set's obstacle-space projection."""
@@ -68,6 +72,10 @@ class PlanChecker:
         stop_slack: instead of ``stop_tolerance``: the final set's interval must lie within
             ``stop_slack`` of its own radius around rest, i.e. ``|final centre| <= stop_slack``
             on the stop dims (the tolerance is the set's radius plus the slack, per plan).
+            Without either, ``stop_slack`` = :data:`DEFAULT_STOP_SLACK`. A stop check that no
+            state of the offline data could fail (tolerance at or beyond the largest
+            ``|value|`` the data reach on a stop dim) tests nothing and raises a
+            ``UserWarning`` saying so: see :meth:`vacuous_stop_dims`.
         set_generators: width of the projected sets after Girard reduction
             (default ``4 d``).
         margin: a set counts as colliding when ``v* <= 1 + margin``.
@@ -99,8 +107,10 @@ class PlanChecker:
         self.set_generators = reduce_girard(errors[:, self.position_dims], self.set_width)  # [T, d, ps]
         self.plan_dependent = reach.plan_dependent
         self.stop_radius = errors[-1, self.stop_dims].abs().sum(-1)  # [len(stop_dims)], global model
-        if (stop_tolerance is None) == (stop_slack is None):
-            raise ValueError("give exactly one of `stop_tolerance` and `stop_slack`")
+        if stop_tolerance is not None and stop_slack is not None:
+            raise ValueError("give at most one of `stop_tolerance` and `stop_slack`")
+        if stop_tolerance is None and stop_slack is None:
+            stop_slack = DEFAULT_STOP_SLACK
         self.stop_slack = None if stop_slack is None else torch.as_tensor(stop_slack, dtype=dtype).expand(
             len(self.stop_dims))
         if stop_tolerance is None:
@@ -122,6 +132,46 @@ class PlanChecker:
         # a model of a restricted domain: the boxes of R_0 (a point) .. R_{T-1} must stay in it
         self._domain_radius = (torch.cat((errors.new_zeros(1, errors.shape[1]), errors[:-1].abs().sum(-1)))
                                if reach.bounded_domain and not self.plan_dependent else None)
+        vacuous = self.vacuous_stop_dims()
+        if vacuous:
+            top, tolerance = self._top_speed(), self._stop_tolerance_at_rest()
+            details = ", ".join(f"dim {d}: tolerance {float(tolerance[i]):.3g} >= {float(top[i]):.3g}"
+                                for i, d in enumerate(self.stop_dims) if d in vacuous)
+            warnings.warn(
+                f"the stop check certifies nothing on stop dims {vacuous} ({details}, the largest |value| in the "
+                "offline data): a final reachable set within the tolerance may still hold every speed the robot "
+                "reaches, so 'accepted plans end stopped' (paper Theorem 1) is not shown; the centre is still "
+                "checked. Tighten the final set (more or local data, a shorter horizon, a braking policy that "
+                "stops in fewer steps) or lower `stop_slack` / `stop_tolerance`.",
+                UserWarning, stacklevel=3)
+
+    def vacuous_stop_dims(self) -> list[int]:
+        """Stop dims whose tolerance (the final set's radius plus the slack, from rest under the
+        braking manoeuvre for a plan-dependent model) reaches the largest ``|value|`` of that dim
+        in the model's offline data: there "stopped" holds for every state the robot reaches.
+        Empty when the model carries no data."""
+        top = self._top_speed()
+        if top is None or not self.stop_dims:
+            return []
+        tolerance = self._stop_tolerance_at_rest()
+        return [d for d, t, v in zip(self.stop_dims, tolerance.tolist(), top.tolist()) if t >= v]
+
+    def _top_speed(self) -> Tensor | None:
+        """Largest ``|value|`` on each stop dim over the offline data (``None`` without data)."""
+        x_minus, x_plus = getattr(self.reach, "x_minus", None), getattr(self.reach, "x_plus", None)
+        if x_minus is None or x_plus is None or not x_minus.numel():
+            return None
+        return torch.cat((x_minus, x_plus))[:, self.stop_dims].abs().amax(0)
+
+    def _stop_tolerance_at_rest(self) -> Tensor:
+        """The stop tolerance on the stop dims; for a plan-dependent model with ``stop_slack``,
+        the final set's radius of braking from rest plus the slack."""
+        if not self.plan_dependent or self.stop_slack is None:
+            return self.stop_tolerance
+        rest = torch.zeros(1, self.reach.state_dim, dtype=self.action_low.dtype, device=self.action_low.device)
+        with torch.no_grad():
+            _, sets, _ = self.rollout_sets(rest, self._hold(rest).view(1, 1, -1))
+        return sets.generators[0, -1, self.stop_dims].abs().sum(-1) + self.stop_slack
 
     def checker(self, obstacle_generators: Tensor) -> ZonotopeCollisionChecker:
         """The facet table for ``obstacle_generators`` ``[B, K, d, p]`` (rebuilt on change)."""
