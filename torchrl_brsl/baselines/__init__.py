@@ -18,7 +18,7 @@ random-input offline data BRSL gets.
 """
 from torchrl_brsl.baselines._common import ActionFilter, AffineModel, point_clearance
 from torchrl_brsl.baselines.rts import RTSSafeguard, TrajectoryReachableSets
-from torchrl_brsl.baselines.sailr import SAILRIntervener, rollout_hits
+from torchrl_brsl.baselines.sailr import SAILRIntervener, rollout_cost
 from torchrl_brsl.baselines.secas import (
     LinearSafetyModel,
     SECASSafetyLayer,
@@ -38,6 +38,6 @@ __all__ = [
     "fit_safety_model",
     "obstacle_features",
     "point_clearance",
-    "rollout_hits",
+    "rollout_cost",
     "secas_correction",
 ]
