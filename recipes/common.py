@@ -61,14 +61,20 @@ def make_base_env(task: DictConfig, seed: int, *, layout: int | None = None, emp
     return envs.make(task.name, seed=seed, empty=empty, layout=layout, **options)
 
 
-def make_env(cfg: DictConfig, seed: int, models: SafetyModels | None = None, layout: int | None = None):
-    """The training / evaluation env: the task, an episode-reward counter and, with ``models``, the layer.
+def make_env(cfg: DictConfig, seed: int, models: SafetyModels | dict | None = None, layout: int | None = None,
+             evaluation: bool = False):
+    """The training / evaluation env: the task, an episode-reward counter and, with ``models``, the
+    layer (BRSL's, or a baseline's: ``models`` is then the dict of :func:`recipes.baselines.fit`).
 
     ``episode_reward`` sums the task's reward before the layer's penalty (the paper's metric).
+    ``evaluation``: SAILR's interventions no longer end the episode.
     """
     transforms = [RewardSum(in_keys=["reward"], out_keys=["episode_reward"])]
     if models is not None:
-        transforms.append(make_layer(cfg, models))
+        from recipes import baselines
+
+        transforms.append(make_layer(cfg, models) if cfg.method.layer
+                          else baselines.make_transform(cfg, models, evaluation=evaluation))
     return TransformedEnv(make_base_env(cfg.task, seed, layout=layout), Compose(*transforms))
 
 
@@ -254,10 +260,13 @@ def make_planner(cfg: DictConfig, policy, env):
 
 # ----------------------------------------------------------------------------- runs on disk
 def load_run(run_dir: str | Path):
-    """``(cfg, actor, models)`` of a trained run (``models`` is None for methods without the layer)."""
+    """``(cfg, actor, models)`` of a trained run (``models`` is None for methods without a layer)."""
     run_dir = Path(run_dir)
     cfg = OmegaConf.load(run_dir / "config.yaml")
-    models = SafetyModels.load(run_dir) if cfg.method.layer else None
+    from recipes import baselines
+
+    models = SafetyModels.load(run_dir) if cfg.method.layer else baselines.load(run_dir) \
+        if baselines.name(cfg) else None
     env = make_env(cfg, seed=0, models=models)
     actor = make_actor(env, cfg.hidden)
     state = torch.load(run_dir / "checkpoint.pt", map_location="cpu", weights_only=False)

@@ -45,7 +45,7 @@ def run_episodes(cfg, actor, models, episodes: int | None = None, seed: int = 10
     interventions, failsafes, holds, outside = [], [], [], []
     frames = []
     for layout in range(n):
-        env = common.make_env(cfg, seed=seed + layout, models=models, layout=layout)
+        env = common.make_env(cfg, seed=seed + layout, models=models, layout=layout, evaluation=True)
         td = env.reset()
         reward, goal, hit = 0.0, False, False
         while True:
@@ -55,13 +55,16 @@ def run_episodes(cfg, actor, models, episodes: int | None = None, seed: int = 10
             policy_time = time.perf_counter() - start
             td = env.step(td)
             nxt = td["next"]
-            layer_time = nxt["brsl", "compute_time"].item() if models is not None else 0.0
-            times.append(1e3 * (policy_time + layer_time))
-            if models is not None:
-                interventions.append(nxt["brsl", "intervened"].item())
-                failsafes.append(nxt["brsl", "failsafe"].item())
-                holds.append(nxt["brsl", "unverified_hold"].item())
-                outside.append(nxt["brsl", "out_of_data"].item())
+            layer = None if models is None else nxt["brsl" if cfg.method.layer else "baseline"]
+            times.append(1e3 * (policy_time + (layer["compute_time"].item() if layer is not None else 0.0)))
+            if layer is not None:
+                interventions.append(layer["intervened"].item())
+            if layer is not None and cfg.method.layer:
+                failsafes.append(layer["failsafe"].item())
+                holds.append(layer["unverified_hold"].item())
+                outside.append(layer["out_of_data"].item())
+            elif layer is not None and "fallback" in layer.keys():  # RTS: no safe trajectory, the last one goes on
+                failsafes.append(layer["fallback"].item())
             reward = nxt["episode_reward"].item()  # task reward, before the layer's penalty
             speeds.append(nxt["speed"].item())
             contact_steps.append(nxt["collision"].item())

@@ -1,4 +1,5 @@
-"""TD3 on a task, behind the BRSL safety layer (``method=brsl``) or unprotected (``method=td3``).
+"""TD3 on a task, behind the BRSL safety layer (``method=brsl``), unprotected (``method=td3``) or
+behind one of the paper's baselines (``method=secas|sailr|rts``, see :mod:`recipes.baselines`).
 
     python -m recipes.train task=point_circle method=brsl seed=0 total_frames=20000
 
@@ -26,14 +27,16 @@ from torchrl.modules import AdditiveGaussianModule
 from torchrl.objectives import SoftUpdate, TD3Loss
 from torchrl.record.loggers import get_logger
 
-from recipes import common
+from recipes import baselines, common
 from torchrl_brsl.modules import DampedGaussianModule
 
 
 def train(cfg: DictConfig, run_dir: str | Path) -> dict:
     """Trains (or resumes) one run; returns the last logged metrics and totals."""
     run_dir = Path(run_dir)
-    if cfg.method.layer and cfg.method.learn_from not in ("executed", "proposed"):
+    baseline = baselines.name(cfg)  # None for brsl and td3
+    filtered = cfg.method.layer or baseline is not None  # a transform decides the executed action
+    if filtered and cfg.method.learn_from not in ("executed", "proposed"):
         raise ValueError(f"method.learn_from must be 'executed' or 'proposed', got {cfg.method.learn_from!r}")
     run_dir.mkdir(parents=True, exist_ok=True)
     OmegaConf.save(cfg, run_dir / "config.yaml", resolve=True)
@@ -54,6 +57,10 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:
         else:
             models = common.SafetyModels.fit(cfg, cfg.cache_dir)
             models.save(run_dir)
+    elif baseline is not None:
+        resume = (run_dir / baselines.FILE).exists() and ckpt is not None
+        models = baselines.load(run_dir) if resume else baselines.fit(cfg, cfg.cache_dir)
+        baselines.save(models, run_dir)
 
     # --- env, actor, critics, exploration, (planner)
     env = common.make_env(cfg, cfg.seed + frames, models)
@@ -138,7 +145,7 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:
     for data in collector:
         data = data.reshape(-1)
         n = data.numel()
-        if cfg.method.layer and cfg.method.learn_from == "executed":
+        if filtered and cfg.method.learn_from == "executed":
             # learn from what the robot executed (the reward is already penalised by the layer);
             # "proposed" keeps the proposal: the layer is then part of the agent's environment
             data["action"] = data["next", "safe_action"]
@@ -199,6 +206,11 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:
                             "brsl/out_of_data_rate": brsl["out_of_data"].float().mean().item(),
                             "brsl/compute_time_ms": 1e3 * brsl["compute_time"].mean().item(),
                             "brsl/min_collision_value": brsl["min_collision_value"].min().item()})
+        if baseline is not None:
+            diag = data["next", "baseline"]
+            totals["interventions"] += int(diag["intervened"].sum())
+            metrics.update({f"{baseline}/intervention_rate": diag["intervened"].float().mean().item(),
+                            f"{baseline}/compute_time_ms": 1e3 * diag["compute_time"].mean().item()})
         if logger is not None:
             for name, value in metrics.items():
                 logger.log_scalar(name, value, step=totals["frames"])
