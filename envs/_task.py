@@ -4,7 +4,9 @@ Subclasses supply the robot: how an action drives the physics, how state-space n
 is written back into the physics, what the state and the policy observation are, the
 layout sampler and the reward. This class supplies layouts and seeding, process
 noise, collision detection from MuJoCo contacts, the data region of the empty
-variant and the observation dictionary read by :class:`envs._wrapper.SafetyTaskEnv`.
+variant and the observation dictionary read by :class:`envs._wrapper.SafetyTaskEnv`, including
+the per-step constraint ``cost`` (1 in contact with an obstacle, else 0), as TorchRL's
+Safety-Gymnasium wrapper exposes it for constrained RL.
 """
 from __future__ import annotations
 
@@ -127,6 +129,7 @@ class SafetyTask(base.Task):
             collision=specs.Array((1,), bool, "collision"),
             goal_reached=specs.Array((1,), bool, "goal_reached"),
             speed=specs.Array((1,), np.float64, "speed"),
+            cost=specs.Array((1,), np.float64, "cost"),
         )
 
     def initialize_episode(self, physics):
@@ -180,6 +183,7 @@ class SafetyTask(base.Task):
             collision=np.array([self._collision]),
             goal_reached=np.array([self._goal_reached]),
             speed=np.array([self._speed(physics)]),
+            cost=np.array([float(self._collision)]),
         )
 
     def get_termination(self, physics):

@@ -17,8 +17,9 @@ class RenderingUnavailable(RuntimeError):
     """Raised by :meth:`SafetyTaskEnv.render` when no OpenGL backend can be created."""
 
 
-SAFETY_KEYS = ("state",)
-"""Entries kept in float64 (with every ``obstacles`` entry): what the safety layer checks."""
+SAFETY_KEYS = ("state", "cost")
+"""Entries kept in float64 (with every ``obstacles`` entry): what the safety layer checks, and the
+constraint ``cost`` (float64, as in TorchRL's Safety-Gymnasium wrapper)."""
 
 
 def _to_float32(spec):
@@ -41,9 +42,11 @@ class SafetyTaskEnv(DMControlWrapper):
     Output keys (``d`` position dim, ``K`` obstacle capacity, ``p`` generators):
     ``observation [obs_dim]``, ``state [n]``, ``obstacles`` (``center [K, d]``,
     ``generators [K, d, p]``, ``mask [K]`` bool), ``collision [1]`` bool,
-    ``goal_reached [1]`` bool, ``speed [1]``, ``reward [1]``, ``done``/``terminated``/
+    ``goal_reached [1]`` bool, ``speed [1]``, ``cost [1]`` (1.0 in contact with an obstacle,
+    else 0.0: the per-step constraint signal of constrained RL, like the ``cost`` key of TorchRL's
+    Safety-Gymnasium wrapper, here shaped like ``reward``), ``reward [1]``, ``done``/``terminated``/
     ``truncated [1]`` bool and, with ``from_pixels=True``, ``pixels [H, W, 3]`` uint8.
-    Float entries are float32, except ``state`` and ``obstacles`` (float64).
+    Float entries are float32, except ``state``, ``obstacles`` and ``cost`` (float64).
 
     Args:
         env: a ``dm_control.rl.control.Environment`` whose task is a

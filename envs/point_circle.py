@@ -12,9 +12,10 @@ After Achiam et al. (2017) and Wagener et al. (2021), as in Sec. IV of the BRSL 
   obstacles (the robot sphere touches a wall exactly when its centre leaves the
   box), target circle radius ``r = 2.0`` (``‖(1.2, 1.2)‖ ≈ 1.70 < r``).
 * Reward ``((ẋ, ẏ)·(-y, x)) / (1 + |‖(x, y)‖ - r|)``.
-* Observation ``(x, y, ẋ, ẏ, ‖(x, y)‖ - r)``. Episodes last 200 steps; a collision
-  does not end the episode unless ``terminate_on_collision=True``. There is no
-  goal (``goal_reached`` stays False).
+* Observation ``(x, y, ẋ, ẏ, ‖(x, y)‖ - r)``. Episodes last 200 steps; leaving the
+  safe set (touching a wall) ends the episode (``terminated``), as in the point
+  environment of Wagener et al. (2021) that the paper follows, unless
+  ``terminate_on_collision=False``. There is no goal (``goal_reached`` stays False).
 * Empty variant: no walls, random start velocity (speed ≤ 2), truncated when
   ``|x|`` or ``|y|`` exceeds 5 m.
 """
@@ -139,7 +140,7 @@ def build_environment(
     layout: int | None = None,
     seed=None,
     episode_steps: int = 200,
-    terminate_on_collision: bool = False,
+    terminate_on_collision: bool = True,
 ) -> control.Environment:
     """The dm_control environment of ``point_circle``.
 
@@ -148,7 +149,8 @@ def build_environment(
         layout: fixed evaluation layout index (sets the start position), or None.
         seed: seed of the task's random state.
         episode_steps: time limit in steps of 0.1 s.
-        terminate_on_collision: end the episode when the robot touches a wall.
+        terminate_on_collision: end the episode when the robot touches a wall, i.e. leaves
+            the safe set (False: the episode goes on, the robot may cross the walls).
 
     Returns:
         A ``dm_control.rl.control.Environment``.

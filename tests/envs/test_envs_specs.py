@@ -39,6 +39,7 @@ def test_keys_shapes_and_dtypes(name):
         "collision": ((1,), torch.bool),
         "goal_reached": ((1,), torch.bool),
         "speed": ((1,), torch.float32),
+        "cost": ((1,), torch.float64),
         "reward": ((1,), torch.float32),
         "done": ((1,), torch.bool),
         "terminated": ((1,), torch.bool),
