@@ -62,3 +62,42 @@ def test_bad_configurations_name_the_option(tmp_path):
         train(config(tmp_path, "point_boxes", "rts", 100, "method.tasks.point_boxes.braking=spiral"), tmp_path / "c")
     with pytest.raises(ValueError, match="learn_from"):
         train(config(tmp_path, "point_boxes", "sailr", 100, "method.learn_from=both"), tmp_path / "d")
+
+
+def test_table_cells_are_mean_and_std_over_seeds():
+    from recipes.table import cell
+
+    rows = [{"mean_reward": 10.0, "mean_speed": 0.5, "max_speed": 2.0, "compute_time_mean": 1.0,
+             "compute_time_std": 0.2}, {"mean_reward": 20.0, "mean_speed": 0.7, "max_speed": 1.0,
+                                        "compute_time_mean": 3.0, "compute_time_std": 0.4}]
+    assert cell(rows, "mean_reward", "{:.0f}") == "15 ± 5"
+    assert cell(rows, "speed", None) == "0.60 ± 0.10 / 1.50 ± 0.50"
+    assert cell(rows, "compute_time", None) == "2.00 ± 0.30"
+    assert cell(rows[:1], "mean_reward", "{:.0f}") == "10" and cell(rows, "seeds", None) == "2"
+    assert cell(None, "mean_reward", "{:.0f}") == "–" and cell(rows, "goal_rate", "{:.0f}") == "–"
+
+
+def test_table_prints_both_tables_in_the_paper_layout(tmp_path, capsys):
+    from recipes.table import main as table_main
+
+    for task, method, seed in (("point_boxes", "td3", 0), ("point_boxes", "td3", 1), ("point_boxes", "sailr", 0),
+                               ("diffdrive_nav", "td3", 0)):
+        extra = ["task.episode_steps=30", "init_random_frames=100"] if task == "diffdrive_nav" else []
+        train(config(tmp_path, task, method, 200, f"seed={seed}", "task.eval_layouts=1", *extra),
+              Path(tmp_path) / task / method / f"seed{seed}")
+    table_main([str(tmp_path), "--out", str(tmp_path / "tables.md")])
+    out = capsys.readouterr().out
+    assert "Table I" in out and "Table II" in out and (tmp_path / "fig4.png").exists()
+    goal, path = out.split("**Table II")
+
+    def rows(text):
+        return {line.split("|")[1].strip(): [c.strip() for c in line.split("|")[2:-1]]
+                for line in text.splitlines() if line.startswith("| ")}
+
+    assert rows(goal)[""] == ["Turtlebot: BRSL", "Turtlebot: RTS", "Turtlebot: SAILR", "Turtlebot: SECAS",
+                              "Turtlebot: Baseline"]
+    assert rows(goal)["Seeds"] == ["–", "–", "–", "–", "1"]
+    assert rows(path)[""][2] == "point_boxes: SAILR"
+    assert rows(path)["Seeds"] == ["–", "–", "1", "–", "2"]
+    assert "±" in rows(path)["Mean Reward"][4]  # two seeds of td3: mean ± std
+    assert (tmp_path / "tables.md").read_text().strip() in out

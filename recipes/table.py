@@ -1,0 +1,180 @@
+"""The paper's Tables I and II and Fig. 4 over every run under a root, mean ± std over seeds.
+
+    python -m recipes.table runs [--reuse] [--episodes N] [--out docs/tables.md]
+
+Reads ``<root>/<task>/<method>/seed<k>`` for every task and method, evaluates each run (or
+reuses its ``eval.csv`` with ``--reuse``) and prints, as in the paper, Table I (goal tasks:
+Turtlebot = ``diffdrive_nav``, quadrotor = ``quadrotor_nav``) and Table II (path tasks: point =
+``point_circle``, ``hexarotor_wind``; other path tasks follow), tasks side by side and the
+methods BRSL, RTS, SAILR, SECAS, Baseline (TD3) as columns. Every cell is the mean ± std over
+seeds (the seed count is a row), compute time the per-step mean ± per-step std averaged over
+seeds; a method without runs on a task shows ``–``. Extra rows: collision steps during training
+(summed over the run, mean ± std over seeds) and interventions. Writes ``fig4.png`` (episode
+reward over training frames, mean and a ±std band over seeds, one panel per task) into the root.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from recipes import common
+
+#: the paper's column order; its names for the columns
+METHODS = ["brsl", "rts", "sailr", "secas", "td3"]
+LABELS = {"brsl": "BRSL", "rts": "RTS", "sailr": "SAILR", "secas": "SECAS", "td3": "Baseline"}
+#: the paper's tasks per table (others of the same kind follow), with its names for them
+TASKS = {"goal": ["diffdrive_nav", "quadrotor_nav"], "path": ["point_circle", "hexarotor_wind"]}
+TASK_LABELS = {"diffdrive_nav": "Turtlebot", "quadrotor_nav": "Quadrotor", "point_circle": "Point",
+               "hexarotor_wind": "Hexarotor"}
+ROWS = {
+    "goal": [("goal_rate", "Goal Rate [%]", "{:.0f}"), ("collision_rate", "Collision Rate [%]", "{:.1f}"),
+             ("speed", "Mean/Max Speed [m/s]", None), ("mean_reward", "Mean Reward", "{:.0f}"),
+             ("compute_time", "Compute Time [ms]", None)],
+    "path": [("collision_rate", "Collisions [%]", "{:.1f}"), ("mean_speed", "Mean Speed [m/s]", "{:.2f}"),
+             ("max_speed", "Max Speed [m/s]", "{:.2f}"), ("mean_reward", "Mean Reward", "{:.0f}"),
+             ("compute_time", "Compute Time [ms]", None)],
+}
+EXTRA = [("train_collision_steps", "Collision steps in training", "{:.0f}"),
+         ("intervention_rate", "Interventions [share of steps]", "{:.2f}"), ("seeds", "Seeds", "{:.0f}")]
+
+
+def _read_eval(run_dir: Path) -> dict:
+    with open(run_dir / "eval.csv") as f:
+        row = next(csv.DictReader(f))
+    return {k: (v if k in ("method", "task") else float(v)) for k, v in row.items()}
+
+
+def training_collisions(run_dir: Path) -> float:
+    """Steps in contact during training (the checkpoint's totals)."""
+    path = Path(run_dir) / "checkpoint.pt"
+    if not path.exists():
+        return float("nan")
+    return float(torch.load(path, map_location="cpu", weights_only=False)["totals"]["collisions"])
+
+
+def collect(root: str | Path, episodes: int | None = None, reuse: bool = False) -> dict:
+    """``{task: {"kind": kind, "methods": {method: [per-seed metrics]}}}`` of every run under ``root``."""
+    from recipes.evaluate import evaluate_run
+
+    out: dict = {}
+    for task_dir in sorted(p for p in Path(root).iterdir() if p.is_dir()):
+        runs = common.runs_of(task_dir)
+        if not runs:
+            continue
+        kind = common.task_kind(common.load_config(task_dir, next(iter(runs))).task)
+        methods = {}
+        for method, dirs in runs.items():
+            rows = []
+            for d in dirs:
+                if not (d / "checkpoint.pt").exists():
+                    continue  # a run still starting
+                row = _read_eval(d) if reuse and (d / "eval.csv").exists() else evaluate_run(d, episodes)
+                row["train_collision_steps"] = training_collisions(d)
+                rows.append(row)
+            if rows:
+                methods[method] = rows
+        out[task_dir.name] = {"kind": kind, "methods": methods}
+    return out
+
+
+def _mean_std(values, fmt: str) -> str:
+    values = np.asarray([v for v in values if not np.isnan(v)], dtype=float)
+    if values.size == 0:
+        return "–"
+    if values.size == 1:
+        return fmt.format(values[0])
+    return f"{fmt.format(values.mean())} ± {fmt.format(values.std())}"
+
+
+def cell(rows: list[dict] | None, key: str, fmt: str | None) -> str:
+    """One cell: mean ± std over the seeds' values (``–`` without runs or where it does not apply)."""
+    if not rows:
+        return "–"
+    if key == "seeds":
+        return str(len(rows))
+    if key == "speed":
+        return f"{_mean_std([r['mean_speed'] for r in rows], '{:.2f}')} / {_mean_std([r['max_speed'] for r in rows], '{:.2f}')}"
+    if key == "compute_time":
+        mean = np.mean([r["compute_time_mean"] for r in rows])
+        std = np.mean([r["compute_time_std"] for r in rows])
+        return f"{mean:.2f} ± {std:.2f}"
+    return _mean_std([r.get(key, np.nan) for r in rows], fmt)
+
+
+def tables(results: dict) -> str:
+    """Table I and Table II in Markdown, the paper's layout (tasks side by side)."""
+    text = []
+    for kind, title in (("goal", "Table I: goal-based experiments"), ("path", "Table II: path following")):
+        tasks = [t for t in TASKS[kind] if t in results] + sorted(
+            t for t, r in results.items() if r["kind"] == kind and t not in TASKS[kind])
+        if not tasks:
+            continue
+        header = "| |" + "|".join(f" {TASK_LABELS.get(t, t)}: {LABELS[m]} " for t in tasks for m in METHODS) + "|"
+        lines = [f"**{title}** (mean ± std over seeds)", "", header, "|---" * (1 + len(tasks) * len(METHODS)) + "|"]
+        for key, label, fmt in ROWS[kind] + EXTRA:
+            cells = [cell(results[t]["methods"].get(m), key, fmt) for t in tasks for m in METHODS]
+            lines.append(f"| {label} | " + " | ".join(cells) + " |")
+        text.append("\n".join(lines))
+    return "\n\n".join(text)
+
+
+def plot_fig4(root: str | Path, results: dict, path: str | Path | None = None) -> Path | None:
+    """Episode reward over training frames, mean and ±std band over seeds, one panel per task."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    tasks = [t for kind in ("goal", "path") for t in TASKS[kind] if t in results]
+    tasks += sorted(t for t in results if t not in tasks)
+    if not tasks:
+        return None
+    fig, axes = plt.subplots(1, len(tasks), figsize=(4.5 * len(tasks), 3.5), squeeze=False)
+    for ax, task in zip(axes[0], tasks):
+        runs = common.runs_of(Path(root) / task)
+        for method in [m for m in METHODS if m in runs] + sorted(m for m in runs if m not in METHODS):
+            curves = [common.read_scalar(d, "train/episode_reward") for d in runs[method]]
+            curves = [c for c in curves if len(c[0])]
+            if not curves:
+                continue
+            grid = np.unique(np.concatenate([c[0] for c in curves]))
+            values = np.stack([np.interp(grid, steps, vals) for steps, vals in curves])
+            ax.plot(grid, values.mean(0), label=f"{LABELS.get(method, method)} ({len(curves)})")
+            if len(curves) > 1:
+                ax.fill_between(grid, values.mean(0) - values.std(0), values.mean(0) + values.std(0), alpha=0.2)
+        ax.set_title(TASK_LABELS.get(task, task))
+        ax.set_xlabel("frames")
+        ax.set_ylabel("episode reward")
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    path = Path(path or Path(root) / "fig4.png")
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("root", help="the runs root (<root>/<task>/<method>/seed<k>)")
+    parser.add_argument("--episodes", type=int, default=None, help="layouts per run (default: task.eval_layouts)")
+    parser.add_argument("--reuse", action="store_true", help="reuse each run's eval.csv when present")
+    parser.add_argument("--out", default=None, help="also write the tables to this Markdown file")
+    args = parser.parse_args(argv)
+    results = collect(args.root, args.episodes, args.reuse)
+    if not any(r["methods"] for r in results.values()):
+        raise SystemExit(f"no finished runs under {args.root} (expected <task>/<method>/seed<k>/checkpoint.pt)")
+    text = tables(results)
+    print(text)
+    if args.out:
+        Path(args.out).write_text(text + "\n")
+    figure = plot_fig4(args.root, results)
+    if figure:
+        print(f"\nFig. 4: {figure}")
+
+
+if __name__ == "__main__":
+    main()
