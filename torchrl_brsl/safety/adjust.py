@@ -32,7 +32,10 @@ class GradientAdjuster:
     action-range units, then projects onto the action box. Gradients flow through the
     reachable-set centres, which are affine in the plan (exact chain rule, eq. (11)), and
     through the braking tail. Plans that become safe stop moving; the loop ends when all
-    are safe, after ``max_iterations``, or when the time budget runs out.
+    are safe, after ``max_iterations``, or when the time budget runs out. On a global model
+    the gradient is in closed form: with the constant brake from the affine rollout, with a
+    braking policy from the tail linearised along the current nominal rollout (the same
+    gradient as autograd, without its graph); a local model's gradient is by autograd.
 
     Args:
         max_iterations: gradient steps at most.
@@ -64,6 +67,10 @@ class GradientAdjuster:
         start = time.perf_counter() if start is None else start
         affine = checker._affine_for(x0, plan) if self._analytic and not plan.requires_grad else None
         if affine is None:
+            if self._analytic and not plan.requires_grad and _feedback_linearisable(checker, x0, plan):
+                with torch.no_grad():
+                    return self._feedback_steps(checker, x0, plan, obstacle_centers, obstacle_generators,
+                                                obstacle_mask, start)
             return self._autograd(checker, x0, plan, obstacle_centers, obstacle_generators, obstacle_mask, start)
         with torch.no_grad():
             return self._analytic_steps(checker, affine, x0, plan, obstacle_centers, obstacle_generators,
@@ -141,6 +148,44 @@ class GradientAdjuster:
         return Adjustment(plan, evaluation, iterations)
 
 
+    def _feedback_steps(self, checker: PlanChecker, x0: Tensor, plan: Tensor, obstacle_centers: Tensor,
+                        obstacle_generators: Tensor, obstacle_mask: Tensor, start: float) -> Adjustment:
+        """The iteration of :meth:`_analytic_steps` for a braking *policy* (global model).
+
+        The plan part of every centre is still affine in the plan; the braking tail is
+        linearised along the current nominal trajectory, ``J_{j+1} = (A + B Dπ(c_j)) J_j``
+        (``Dπ`` from one batched backward pass per action dim, zero where the brake is clipped),
+        which is the exact gradient of the tail as rolled out. Every iterate is checked exactly.
+        """
+        low, high = checker.action_low, checker.action_high
+        scale = (high - low).clamp_min(1e-12)
+        iterations = torch.zeros(plan.shape[0], dtype=torch.long, device=plan.device)
+        threshold = 1 + self.target_margin
+        for iteration in range(self.max_iterations + 1):
+            evaluation, gauge = checker._evaluate(x0, plan, obstacle_centers, obstacle_generators, obstacle_mask,
+                                                  detail=True)
+            active = ~evaluation.safe
+            out_of_time = self.time_budget is not None and time.perf_counter() - start > self.time_budget
+            if iteration == self.max_iterations or out_of_time or not bool(active.any()):
+                break
+            jacobian = _feedback_jacobian(checker, evaluation.centers, plan.shape[1])  # [B, T, n, N]
+            values = evaluation.values
+            picked = gauge.products.gather(-1, gauge.best.unsqueeze(-1)).squeeze(-1)  # [B, T, K]
+            coef = torch.where((values < threshold) & (values > 0), picked.sign(), 0.0)
+            weights = _picked_weights(checker, gauge.best)  # [B, T, K, d]
+            per_step = (coef.unsqueeze(-2) @ weights).squeeze(-2)  # [B, T, d]
+            grad = torch.einsum("btd,btdn->bn", per_step, jacobian[:, :, checker.position_dims])
+            if checker.stop_dims:
+                final = _stop_centres(checker, evaluation.centers)  # [B, s]
+                excess = evaluation.stop_excess.unsqueeze(-1)
+                attains = (final.abs() - evaluation.stop_room) == excess
+                share = attains * (final.sign() * (excess > 0)) / attains.sum(-1, keepdim=True).clamp_min(1)
+                grad = grad + (share.unsqueeze(1) @ jacobian[:, -1, checker.stop_dims]).squeeze(1)
+            plan = self._step(plan, grad.view_as(plan), active, low, high, scale)
+            iterations += active.long()
+        return Adjustment(plan, evaluation, iterations)
+
+
 class FacetQPAdjuster:
     """Facet-locked quadratic program: the fast adjuster.
 
@@ -189,7 +234,11 @@ class FacetQPAdjuster:
         ref_eval, gauge = checker._evaluate(x0, reference, obstacle_centers, obstacle_generators, obstacle_mask,
                                             detail=True)
         affine = checker._affine_for(x0, reference)
-        if affine is None:  # feedback braking: linearise the tail by finite differences
+        if affine is None and _feedback_linearisable(checker, x0, reference):  # braking policy: linearised tail
+            jacobian = _feedback_jacobian(checker, ref_eval.centers, horizon)  # [B, T, n, N]
+            pos_jac = jacobian[:, :, checker.position_dims]  # [B, T, d, N]
+            stop_jac = jacobian[:, -1, checker.stop_dims]  # [B, s, N]
+        elif affine is None:  # feedback braking: linearise the tail by finite differences
             jacobian = _centre_jacobian(checker, x0, reference)  # [B, T, n, P, m]
             pos_jac = jacobian[:, :, checker.position_dims].flatten(-2)  # [B, T, d, N]
             stop_jac = jacobian[:, -1, checker.stop_dims].flatten(-2)  # [B, s, N]
@@ -255,6 +304,55 @@ class FacetQPAdjuster:
             cached = ((high - low).repeat(horizon), torch.cat((eye, -eye)), high.repeat(horizon), low.repeat(horizon))
             checker._affine[key] = cached
         return cached
+
+
+def _feedback_linearisable(checker: PlanChecker, x0: Tensor, plan: Tensor) -> bool:
+    """A braking policy on a global model, batched ``x0`` ``[B, n]`` and ``plan`` ``[B, P, m]`` in
+    the model's dtype: the tail can be linearised along the nominal rollout."""
+    return (checker.failsafe.policy is not None and not checker.plan_dependent and x0.ndim == 2 and plan.ndim == 3
+            and plan.dtype == checker.reach.state_matrix.dtype)
+
+
+def _feedback_jacobian(checker: PlanChecker, centers: Tensor, plan_steps: int) -> Tensor:
+    """``d centres / d plan`` ``[B, T, n, P m]`` of a plan with a braking-policy tail (global model).
+
+    The first ``P`` centres are affine in the plan (the model's block-Toeplitz input map); each
+    tail step ``c_{j+1} = A c_j + B clip(π(c_j)) + k`` multiplies the Jacobian by
+    ``A + B Dπ(c_j)``, with ``Dπ`` evaluated at the nominal ``centers`` ``[B, T, n]`` (one
+    batched backward pass per action dim) and zero where the braking action is clipped.
+    """
+    reach = checker.reach
+    n_envs, horizon, n = centers.shape
+    m = reach.action_dim
+    key = ("plan jacobian", plan_steps, centers.dtype, centers.device)
+    if key not in checker._affine:
+        _, transfer, _ = reach._transfer(horizon)
+        blocks = transfer.view(horizon, n, horizon, m)[:plan_steps, :, :plan_steps]
+        checker._affine[key] = blocks.reshape(plan_steps, n, plan_steps * m).to(centers).contiguous()
+    plan_part = checker._affine[key]  # [P, n, P m]
+    jacobians = [plan_part.expand(n_envs, *plan_part.shape)]
+    n_tail = horizon - plan_steps
+    if n_tail:
+        with torch.enable_grad():
+            states = centers[:, plan_steps - 1:horizon - 1].detach().requires_grad_(True)  # [B, n_tail, n]
+            raw = checker.failsafe.policy(states).to(states.dtype)  # [B, n_tail, m]
+            rows = []
+            for i in range(m):
+                grad = (torch.autograd.grad(raw[..., i].sum(), states, retain_graph=i + 1 < m, allow_unused=True)[0]
+                        if raw.requires_grad else None)
+                rows.append(torch.zeros_like(states) if grad is None else grad)
+        derivative = torch.stack(rows, dim=-2)  # [B, n_tail, m, n]
+        raw = raw.detach()
+        unclipped = (raw > checker.action_low) & (raw < checker.action_high)
+        closed_loop = reach.state_matrix.to(centers) + reach.input_matrix.to(centers) @ (
+            derivative * unclipped.unsqueeze(-1))  # [B, n_tail, n, n]
+        current = jacobians[0][:, -1]
+        tail = []
+        for k in range(n_tail):
+            current = closed_loop[:, k] @ current
+            tail.append(current)
+        jacobians.append(torch.stack(tail, dim=1))
+    return torch.cat(jacobians, dim=1)
 
 
 def _centre_jacobian(checker: PlanChecker, x0: Tensor, plan: Tensor, eps: float = 1e-6) -> Tensor:

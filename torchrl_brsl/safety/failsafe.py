@@ -22,6 +22,15 @@ class Failsafe:
             actions, whose reachable sets the layer then verifies. ``None`` brakes with
             ``hold_action`` (velocity-commanded robots).
 
+    Which one: the constant brake when ``hold_action`` itself stops the robot within ``n_brk``
+    steps and keeps it stopped (a zero velocity command on a velocity servo); it is the
+    cheapest, every reachable-set centre then being one affine map of state and plan. A
+    braking policy for acceleration- or force-commanded robots and for any robot that drifts
+    under a constant command (with the constant brake their stop check is rarely met and the
+    layer intervenes far more; see "Bring your own robot" in ``docs/guide.md``). Check either
+    on the true system: from the states the robot reaches, ``n_brk`` steps of braking stop it
+    and it stays stopped (paper Assumption 1).
+
     Examples:
         >>> brake = Failsafe(torch.zeros(2), n_brk=6)  # velocity commands: command zero
         >>> brake.actions(torch.zeros(4, 5)).shape

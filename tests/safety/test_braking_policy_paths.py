@@ -1,0 +1,79 @@
+"""With a state-dependent braking policy on a global model, the adjusters linearise the braking
+tail along the nominal rollout instead of differentiating through it: same gradients as
+autograd, every accepted plan still checked exactly."""
+import pytest
+import torch
+
+from torchrl_brsl.reach import DataDrivenReach, DoubleIntegrator
+from torchrl_brsl.safety import FacetQPAdjuster, Failsafe, GradientAdjuster, PlanChecker
+from torchrl_brsl.safety.adjust import _centre_jacobian, _feedback_jacobian
+
+N_PLAN, N_BRK = 5, 8
+D = torch.float64
+
+
+def brake_policy(x):
+    """Full deceleration, saturating at 0.8 (the clip is active at high speed only)."""
+    return (-4.0 * x[..., 2:]).clamp(-0.8, 0.8)
+
+
+@pytest.fixture(scope="module")
+def checker():
+    system = DoubleIntegrator(drag=0.05, max_speed=3.0, data_speed=1.5)
+    x, xp, u = system.offline_data(500, torch.Generator().manual_seed(0))
+    reach = DataDrivenReach.fit(x, xp, u, system.noise, translation_invariant_dims=(0, 1), max_generators=24,
+                                method="global")
+    return PlanChecker(reach, Failsafe(torch.zeros(2, dtype=D), N_BRK, policy=brake_policy), N_PLAN + N_BRK,
+                       stop_dims=(2, 3), stop_slack=0.3, action_low=-torch.ones(2, dtype=D),
+                       action_high=torch.ones(2, dtype=D))
+
+
+def scene():
+    x0 = torch.tensor([[0.0, 0.0, 0.6, 0.05], [0.0, 0.1, 0.4, -0.1], [0.2, 0.0, 0.0, 0.0]], dtype=D)
+    plan = torch.tensor([[[1.0, 0.0]] * N_PLAN, [[0.8, 0.3]] * N_PLAN, [[-0.2, 0.1]] * N_PLAN], dtype=D)
+    centers = torch.tensor([[[1.3, 0.0], [0.5, 0.9]]] * 3, dtype=D)
+    generators = torch.tensor([[[[0.2, 0.0, 0.05], [0.0, 0.35, 0.05]]] * 2] * 3, dtype=D)
+    mask = torch.tensor([[True, True], [True, False], [True, True]])
+    return x0, plan, centers, generators, mask
+
+
+@pytest.mark.parametrize("plan_steps", [1, 3, N_PLAN])
+def test_linearised_tail_matches_finite_differences(checker, plan_steps):
+    x0, plan, *_ = scene()
+    plan = plan[:, :plan_steps] * 0.5
+    _, centres = checker.rollout(x0, plan)
+    raw = brake_policy(centres[:, plan_steps - 1:-1])
+    assert bool((raw.abs() == 0.8).any()) and bool((raw.abs() < 0.8).any())  # both regimes of the clip
+    exact = _feedback_jacobian(checker, centres, plan_steps)
+    numeric = _centre_jacobian(checker, x0, plan).flatten(-2)
+    torch.testing.assert_close(exact, numeric, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("iterations", [1, 4, 15])
+def test_gradient_adjuster_with_a_braking_policy_matches_autograd(checker, iterations):
+    x0, plan, centers, generators, mask = scene()
+    assert not checker.evaluate(x0, plan, centers, generators, mask).safe.all()
+    fast = GradientAdjuster(max_iterations=iterations, time_budget=None)
+    slow = GradientAdjuster(max_iterations=iterations, time_budget=None)
+    slow._analytic = False
+    a = fast(checker, x0, plan, centers, generators, mask)
+    b = slow(checker, x0, plan, centers, generators, mask)
+    assert torch.equal(a.iterations, b.iterations) and a.iterations.max() > 0
+    torch.testing.assert_close(a.plan, b.plan, rtol=0, atol=1e-9)
+    for x, y in zip(a.evaluation, b.evaluation):
+        torch.testing.assert_close(x, y, rtol=0, atol=1e-9)
+
+
+def test_facet_qp_with_a_braking_policy_accepts_only_verified_plans(checker):
+    x0 = torch.tensor([[0.0, 0.0, 0.5, 0.0], [0.0, 0.0, 0.5, 0.0]], dtype=D)
+    centers = torch.tensor([[[1.4, 0.0]], [[1.4, 0.3]]], dtype=D)
+    generators = torch.tensor([[[[0.2, 0.0], [0.0, 0.35]]]] * 2, dtype=D)
+    mask = torch.ones(2, 1, dtype=torch.bool)
+    reference = torch.tensor([[[-1.0, 0.0]] * N_PLAN] * 2, dtype=D)  # decelerate: safe
+    assert checker.evaluate(x0, reference, centers, generators, mask).safe.all()
+    plan = torch.tensor([[[1.0, 0.0]] * N_PLAN] * 2, dtype=D)
+    assert not checker.evaluate(x0, plan, centers, generators, mask).safe.any()
+    result = FacetQPAdjuster()(checker, x0, plan, centers, generators, mask, reference=reference)
+    again = checker.evaluate(x0, result.plan, centers, generators, mask)
+    assert torch.equal(again.safe, result.evaluation.safe) and result.evaluation.safe.all()
+    assert not torch.equal(result.plan, reference)  # it moved towards the proposal
