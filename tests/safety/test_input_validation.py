@@ -304,3 +304,24 @@ def _still_valid(td):
     k = td["obstacles", "center"].shape[-2]
     return (td["state"].shape == (4,) and td["action"].shape == (2,) and td["obstacles", "mask"].shape == (k,)
             and td["obstacles", "generators"].shape[:-1] == (k, 2))
+
+
+def test_a_corrupted_stored_safe_plan_never_reaches_the_robot():
+    env, td = start()
+    td["safe_plan"] = torch.full_like(td["safe_plan"], float("nan"))
+    td["obstacles", "center"][0] = td["state"][:2]  # nothing verifies: the fallback would be the stored plan
+    out = env.step(td)["next"]
+    assert out["brsl", "invalid_input"].item() and out["brsl", "failsafe"].item()
+    assert torch.isfinite(out["safe_action"]).all() and torch.isfinite(out["safe_plan"]).all()
+    assert torch.equal(out["safe_action"], torch.zeros(2))  # the hold action
+
+
+@pytest.mark.parametrize("key, value, message", [
+    ("safe_plan", torch.zeros(3, 2, dtype=torch.float64), r"`safe_plan` has shape \(3, 2\), expected \(9, 2\)"),
+    ("safe_plan_steps", torch.zeros(1), "`safe_plan_steps` must be an integer tensor"),
+])
+def test_a_malformed_stored_safe_plan_is_a_clear_error(key, value, message):
+    env, td = start()
+    td[key] = value
+    with pytest.raises(ValueError, match=message):
+        env.step(td)

@@ -27,8 +27,8 @@ DIAGNOSTICS = {
     "failsafe": torch.bool,  # no safe plan found: braking from the state, or the previous safe plan
     "local": torch.bool,  # the executed plan was verified by the local (restricted-domain) model
     "unverified_hold": torch.bool,  # beyond every verified plan: the braking policy holds (paper Assumption 1)
-    "invalid_input": torch.bool,  # NaN/inf (or beyond INPUT_LIMIT) in the state, proposal or a real obstacle,
-                                  # or a proposal outside the action bounds
+    "invalid_input": torch.bool,  # NaN/inf (or beyond INPUT_LIMIT) in the state, proposal, a real obstacle or
+                                  # the stored safe plan, or a proposal outside the action bounds
     "out_of_data": torch.bool,  # the proposal's sets left the region the offline data cover: not verifiable
     "min_collision_value": torch.float64,  # min v* of the (adjusted) proposal's sets (inf: no obstacle)
     "adjust_iterations": torch.int64,
@@ -73,7 +73,9 @@ class BRSLSafetyLayer(Transform):
     proposal or a real (unmasked) obstacle never reach the robot (the previous safe plan
     continues, ``invalid_input`` and ``failsafe`` are flagged); a proposal outside the action
     bounds is clamped, the clamped plan verified like any other, and ``invalid_input``
-    flagged. ``intervened`` is set whenever the executed action differs from the proposal.
+    flagged; a stored safe plan with such values (not written by the layer) is dropped for
+    the braking policy. ``intervened`` is set whenever the executed action differs from the
+    proposal.
 
     Keys written. TorchRL's collector stores the root TensorDict *before* this transform's
     inverse pass, so the executed action and diagnostics are written to the ``"next"``
@@ -386,6 +388,13 @@ class BRSLSafetyLayer(Transform):
         if safe_plan is None:
             safe_plan = self._hold_plan(batch, state)
             safe_steps = torch.zeros(*batch, 1, dtype=torch.int64, device=state.device)
+        else:  # the layer's own per-env state, as the TensorDict carries it
+            m = self.reach.action_dim
+            _check_structure(self.safe_plan_key, safe_plan, tuple(batch), (self.horizon, m),
+                             f"[T = n_plan + n_brk = {self.horizon}, action_dim={m}]")
+            if safe_steps is None:
+                safe_steps = torch.zeros(*batch, 1, dtype=torch.int64, device=state.device)
+            _check_structure(self.safe_steps_key, safe_steps, tuple(batch), (1,), "one count per env", dtype="int")
         if proposal is None:
             proposal = action.unsqueeze(-2)
         # the plan is verified as the robot will receive it: rounded to the action dtype
@@ -480,11 +489,16 @@ class BRSLSafetyLayer(Transform):
         x0 = state.to(dtype)
         plan = proposal.to(dtype)
         # one cheap test for the usual case: every magnitude below INPUT_LIMIT (NaN fails it)
-        parts = (x0, plan, obstacle_centers, obstacle_generators)
+        parts = (x0, plan, obstacle_centers, obstacle_generators, safe_plan)
         peak = float(torch.stack([t.abs().amax() for t in parts if t.numel()]).amax())  # amax propagates NaN
+        corrupt = None
         if peak < INPUT_LIMIT:
             valid = None
         else:  # per env; an obstacle slot counts only when its mask is set
+            # a corrupted stored plan (not written by this layer) is dropped: the robot holds
+            corrupt = ~(safe_plan.abs() < INPUT_LIMIT).flatten(1).all(-1)
+            safe_plan = torch.where(corrupt.view(-1, 1, 1), self._hold(safe_plan).expand_as(safe_plan), safe_plan)
+            safe_steps = torch.where(corrupt, torch.zeros_like(safe_steps), safe_steps)
             slot_ok = ((obstacle_centers.abs() < INPUT_LIMIT).all(-1)
                        & (obstacle_generators.abs() < INPUT_LIMIT).flatten(-2).all(-1))  # [B, K]
             valid = ((x0.abs() < INPUT_LIMIT).all(-1) & (plan.abs() < INPUT_LIMIT).flatten(1).all(-1)
@@ -592,7 +606,8 @@ class BRSLSafetyLayer(Transform):
             "failsafe": ~accepted,
             "local": local,
             "unverified_hold": exhausted,
-            "invalid_input": outside if valid is None else outside | ~valid,
+            "invalid_input": ((outside if valid is None else outside | ~valid)
+                              | (False if corrupt is None else corrupt)),
             "out_of_data": out_of_data,
             "min_collision_value": (values.flatten(1).amin(-1) if values.shape[-1] and values.shape[-2]
                                     else values.new_full((n_envs,), float("inf"))),
@@ -650,3 +665,5 @@ def _check_structure(key: NestedKey, value, batch: tuple, trailing: tuple, why: 
         raise ValueError(f"`{_name(key)}` must be a bool tensor (True for real obstacles), got {value.dtype}")
     if dtype == "float" and not value.is_floating_point():
         raise ValueError(f"`{_name(key)}` must be a floating-point tensor, got {value.dtype}")
+    if dtype == "int" and (value.is_floating_point() or value.is_complex() or value.dtype is torch.bool):
+        raise ValueError(f"`{_name(key)}` must be an integer tensor, got {value.dtype}")
