@@ -16,11 +16,12 @@ import time
 
 import torch
 
-from torchrl_brsl.reach import (DataDrivenReach, DoubleIntegrator, KinematicBicycle, SaturatedThrustPoint, Unicycle,
+from torchrl_brsl.reach import (CappedVelocityServo, DataDrivenReach, DoubleIntegrator, KinematicBicycle,
+                                SaturatedThrustPoint, Unicycle,
                                 sample_reach)
 from torchrl_brsl.sets import Zonotope
 
-SYSTEMS = {"bicycle": KinematicBicycle, "saturated point": SaturatedThrustPoint,
+SYSTEMS = {"bicycle": KinematicBicycle, "saturated point": SaturatedThrustPoint, "capped servo": CappedVelocityServo,
            "double integrator": DoubleIntegrator, "unicycle": Unicycle}
 
 

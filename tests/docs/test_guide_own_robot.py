@@ -47,8 +47,8 @@ def test_the_layer_keeps_the_rover_collision_free_and_moving(walkthrough):
     shares = walkthrough["shares"]
     assert shares["failsafe"] < 0.2 and shares["unverified_hold"] < 0.05
     assert shares["invalid_input"] == 0 and shares["out_of_data"] < 0.05
-    # the constant brake is safe too, but intervenes much more often
-    assert int(walkthrough["coasted"]["next", "collision"].sum()) == 0
+    # the constant brake breaks Assumption 1 (the rover coasts on): nothing is guaranteed, and
+    # the layer intervenes much more often
     assert walkthrough["coast_shares"]["intervened"] > 2 * shares["intervened"]
 
 

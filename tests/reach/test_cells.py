@@ -4,7 +4,7 @@ import math
 import pytest
 import torch
 
-from torchrl_brsl.reach import (DataDrivenReach, DoubleIntegrator, KinematicBicycle, SaturatedThrustPoint,
+from torchrl_brsl.reach import (DataDrivenReach, DoubleIntegrator, KinematicBicycle, SaturatedThrustPoint, leaf_distance,
                                 sample_reach)
 from torchrl_brsl.sets import Zonotope
 
@@ -115,3 +115,24 @@ def test_fit_rejects_bad_input_by_name():
         DataDrivenReach.fit(x, xp, u, Zonotope(torch.zeros(3, dtype=torch.float64), torch.eye(3, dtype=torch.float64)))
     with pytest.raises(ValueError, match="at least"):
         DataDrivenReach.fit(x[:4], xp[:4], u[:4], system.noise)
+
+
+def test_leaf_distance_matches_a_brute_force_oracle():
+    """``D_l`` = distance of the centre to leaf ``l``'s nearest data point + the box radius, per
+    output in its weighted metric (checked against a loop over leaves and points)."""
+    system = SaturatedThrustPoint()
+    reach = fit(system, 500)
+    cells, points = reach._cells, reach._scaled_data
+    gen = torch.Generator().manual_seed(3)
+    z = points[:7] + 0.2 * torch.randn(7, points.shape[1], generator=gen, dtype=torch.float64)
+    radius = 0.05 * torch.rand(7, points.shape[1], generator=gen, dtype=torch.float64)
+    distance = leaf_distance(cells, points, z, radius)
+    n, n_leaves = cells.errors.shape
+    for k in range(n):
+        w = cells.weights[k]
+        for leaf in range(n_leaves):
+            mine = points[cells.members[k] == leaf]
+            if len(mine) == 0:
+                continue
+            expected = ((z[:, None] - mine) * w).norm(dim=-1).amin(-1) + (radius * w).norm(dim=-1)
+            assert torch.allclose(distance[:, k, leaf], expected), (k, leaf)

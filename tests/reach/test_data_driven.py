@@ -263,3 +263,15 @@ def test_domain_survives_save_and_load_and_bad_domains_are_rejected(tmp_path):
         DataDrivenReach.fit(x, xp, u, system.noise, domain=(torch.zeros(4), torch.ones(4)))
     with pytest.raises(ValueError, match="in `domain`"):
         DataDrivenReach.fit(x, xp, u, system.noise, domain=_low_speed_domain(1e-6))
+
+
+def test_from_env_draws_its_inputs_from_the_generator():
+    import envs
+
+    info = envs.safety_info("point_boxes")
+    noise = Zonotope(info.noise_center.double(), info.noise_generators.double())
+    fits = [DataDrivenReach.from_env(envs.make("point_boxes", empty=True, seed=3), noise, steps=40, method="global",
+                                     generator=torch.Generator().manual_seed(seed),
+                                     translation_invariant_dims=info.position_dims) for seed in (0, 0, 1)]
+    assert torch.equal(fits[0].u_minus, fits[1].u_minus)
+    assert not torch.equal(fits[0].u_minus, fits[2].u_minus)

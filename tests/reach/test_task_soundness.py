@@ -6,14 +6,21 @@ import envs
 from torchrl_brsl.reach import DataDrivenReach, collect_offline_data
 from torchrl_brsl.sets import Zonotope
 
-# the recipes' linear-servo settings, the offline data they collect, the horizon they check and
-# a bound on the final position radius (tight enough to navigate with)
+# task options, the offline data, the horizon checked, the share of plans the model must claim
+# (inside the data's leaves) and a bound on their final position radius (tight enough to
+# navigate with). The uncapped servos are linear; with their caps on, the servos saturate.
 CASES = {
-    "diffdrive_nav": ({"max_acceleration": None, "max_turn_acceleration": None}, 2000, 4, 0.1),
-    "point_boxes": ({"max_acceleration": None}, 500, 4, 0.1),
-    "quadrotor_nav": ({"max_acceleration": None}, 500, 11, 0.1),
-    # a new wind every episode; the local model's radius is 0.31 m here (the global fit's 0.24 m)
-    "hexarotor_wind": ({"max_acceleration": None}, 500, 11, 0.35),
+    "diffdrive_nav": ({"max_acceleration": None, "max_turn_acceleration": None}, 2000, 4, 1.0, 0.1),
+    "point_boxes": ({"max_acceleration": None}, 500, 4, 1.0, 0.1),
+    "quadrotor_nav": ({"max_acceleration": None}, 500, 11, 1.0, 0.1),
+    # measured: 35 of 40 plans claimed, final radius 0.12 m median (the turtlebot's 6 braking steps + 1)
+    "diffdrive_nav:capped": ({}, 2000, 7, 0.75, 0.2),
+    # measured: 40 of 40 claimed, final radius 0.40 m median, 0.76 m at most
+    "quadrotor_nav:capped": ({}, 500, 11, 0.9, 1.0),
+    "point_boxes:capped": ({}, 500, 4, 0.9, 0.1),
+    # a new wind every episode; the local model's radius is 0.39 m here (the global fit's 0.24 m): its 9-D
+    # state is sparsely covered by 500 steps, and the bound pays for the distance to each leaf's data
+    "hexarotor_wind": ({"max_acceleration": None}, 500, 11, 0.75, 0.45),
 }
 
 
@@ -24,7 +31,8 @@ def _uniform(info, *shape):
 
 @pytest.mark.parametrize("name", list(CASES))
 def test_sampled_true_trajectories_stay_in_the_reachable_sets(name):
-    options, steps, horizon, max_radius = CASES[name]
+    options, steps, horizon, min_claimed, max_radius = CASES[name]
+    name = name.split(":")[0]
     torch.manual_seed(0)
     info = envs.safety_info(name)
     data = collect_offline_data(envs.make(name, empty=True, seed=11, **options), steps)
@@ -51,8 +59,9 @@ def test_sampled_true_trajectories_stay_in_the_reachable_sets(name):
         starts.append(x0)
         plans.append(plan)
         visited.append(torch.stack(states))
-    sets = reach.reach(Zonotope.from_point(torch.stack(starts)), torch.stack(plans))  # batch [40, H]
-    inside = sets.contains(torch.stack(visited))
+    sets, claimed = reach.reach_covered(Zonotope.from_point(torch.stack(starts)), torch.stack(plans))  # [40, H]
+    inside = sets.contains(torch.stack(visited))[claimed]
     assert inside.all(), f"{int((~inside).sum())} of {inside.numel()} true states outside their sets"
-    radius = sets.generators[:, -1, list(info.position_dims)].abs().sum(-1).amax()
+    assert claimed.float().mean() >= min_claimed, f"{int(claimed.sum())} of 40 plans claimed"
+    radius = sets.generators[claimed, -1][:, list(info.position_dims)].abs().sum(-1).amax()
     assert radius < max_radius

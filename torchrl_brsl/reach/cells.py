@@ -4,16 +4,18 @@ A global affine fit of a nonlinear robot leaves a residual as wide as the nonlin
 the whole data region (saturation, drag, heading), which then enters every reachable set.
 Here the regressor space ``z = (x_F, u)`` (the non-translation-invariant states and the
 actions, scaled to unit range) is split by a regression tree per output, along the inputs
-and along the differences and sums of a state and an action (where a velocity servo's
-saturation has its kink, ``u - v = const``); each split is the median of the candidate
-direction that leaves the smallest squared residual of the two halves' affine fits (as
-M5 model trees do). The leaves tile the data's bounding region (extended beyond its edges);
-each has its own least-squares fit, on its points and those just beyond its faces, and an
-error interval valid for every ``z`` in it. A reachable-set step (:func:`leaf_bounds`) uses
-the model of the leaf holding the set's centre and the worst error over every leaf the set
-meets (Nguyen-Tuong et al., "Local Gaussian process regression for real time online model
-learning", NeurIPS 2008, for local models; Milanese & Novara, "Set membership identification
-of nonlinear systems", Automatica 2004, for the bound).
+and along the differences and sums of a state and an action; each split is the median of
+the candidate direction that leaves the smallest squared residual of the two halves' affine
+fits (as M5 model trees do). The leaves tile the data's bounding region (extended beyond its
+edges); each has its own least-squares fit, on its points and those just beyond its faces,
+and an error interval valid for every ``z`` in it. A saturating servo's kinks (``u - v =
+const``) are taken out first, where they help: hinge features fitted once over all data
+(:mod:`~torchrl_brsl.reach.hinges`), so that the leaves fit what the hinges leave. A
+reachable-set step (:func:`leaf_bounds`) uses the model of the leaf holding the set's centre
+and the worst error over every leaf the set meets (Nguyen-Tuong et al., "Local Gaussian
+process regression for real time online model learning", NeurIPS 2008, for local models;
+Milanese & Novara, "Set membership identification of nonlinear systems", Automatica 2004, for
+the bound).
 
 **Bound of one leaf.** Data ``y_i = h(z_i) + (w_i - c_w)`` with ``|w_i - c_w| <= w̄``
 per dimension; ``ℓ`` the leaf's affine fit, ``r_i = y_i - ℓ(z_i)`` and ``g = h - ℓ``. If
@@ -22,11 +24,16 @@ weighted per output by :func:`input_relevance`), every data point constrains it:
 
     g_k(z) <= min_i (r_ik + w̄_k + L_k ||z - z_i||) =: U_k(z),
 
-and ``U_k`` is ``L_k``-Lipschitz itself, so with ``δ`` the covering radius (every ``z`` of
-the leaf lies within ``δ`` of a data point ``z_j``), ``g_k(z) <= max_j U_k(z_j) + L_k δ``;
-the lower bound likewise. Unlike the residual box plus noise, the intersection over data
-points removes most of the data's own noise: with many neighbours ``max_j U_k(z_j)``
-approaches ``g + (noise seen) `` from above instead of ``g + 2 w̄``.
+and ``U_k`` is ``L_k``-Lipschitz itself, so at a distance ``D(z)`` from the leaf's nearest
+data point, ``g_k(z) <= max_j U_k(z_j) + L_k max(δ, D(z))``, with ``δ`` the data's covering
+radius (the largest distance of a point to its nearest neighbour): ``L_k D`` alone would
+suffice for an exact ``L_k``, the ``δ`` floor is slack against the sampled ``L_k`` being too
+small (without it one of 440 sampled states of a capped multirotor fell outside); the lower
+bound likewise. Unlike the residual box plus noise, the intersection over data points removes
+most of the data's own noise: with many neighbours ``max_j U_k(z_j)`` approaches ``g + (noise
+seen)`` from above instead of ``g + 2 w̄``. For a whole set, ``D`` is bounded by its centre's distance to the
+leaf's data plus its radius (:func:`leaf_distance`): no assumption that the data cover the
+set is needed.
 
 ``L_k`` is the smallest constant consistent with the leaf's data, ``max_{i,j} (|r_ik - r_jk|
 - 2 w̄_k)_+ / ||z_i - z_j||`` over all pairs, times ``lipschitz_margin``, and never below
@@ -45,6 +52,8 @@ import torch
 from scipy.spatial import cKDTree
 from torch import Tensor
 
+from torchrl_brsl.reach.hinges import fit_hinges, hinge_features
+
 
 class Cells(NamedTuple):
     """Stacked local models: for each of the ``n`` outputs, ``M`` leaves (cells) over scaled regressors ``z``.
@@ -57,13 +66,19 @@ class Cells(NamedTuple):
         directions: ``[f, d]`` the split directions (scaled units).
         weights: ``[n, d]`` each output's input weights in the bound's distance.
         low, high: ``[n, M, f]`` the cell boxes in those directions.
-        slopes: ``[n, M, d]`` least-squares slopes of the output on ``z`` (scaled units).
+        slopes: ``[n, M, d + H]`` least-squares slopes of the output on ``z`` (scaled units), then
+            on the output's hinge features ``relu(hinge_directions @ z - hinge_knots)``.
         intercepts: ``[n, M]`` intercept at ``z = 0`` plus the centre of the error interval.
-        errors: ``[n, M]`` half-widths of the error interval (model error, noise not included).
+        errors: ``[n, M]`` half-widths of the error interval within ``delta`` of the cell's data
+            (model error, noise not included); a query at distance ``D > delta`` adds
+            ``L (D - delta)``.
         lipschitz: ``[n, M]`` the residual's Lipschitz constants used in the bound.
-        delta: ``[n, M]`` the covering radius of each cell's data in the plain metric: a query
-            farther from the data adds ``L`` times the excess (see :meth:`DataDrivenReach.step_sets`).
+        delta: ``[n, M]`` the covering radius of each cell's data in its output's weighted metric
+            (the largest distance of a data point to its nearest neighbour).
         score: ``[n, M]`` the error in noise units, lower is tighter (selects among cells).
+        hinge_directions: ``[n, H, d]`` each output's hinges (padding: zero rows).
+        hinge_knots: ``[n, H]`` their knots (padding: 1, a feature that is always 0).
+        members: ``[n, N]`` the cell holding each data point, per output.
     """
 
     directions: Tensor
@@ -76,22 +91,32 @@ class Cells(NamedTuple):
     lipschitz: Tensor
     delta: Tensor
     score: Tensor
+    hinge_directions: Tensor
+    hinge_knots: Tensor
+    members: Tensor
 
 
 METRIC_FLOORS = (0.05, 0.3, 1.0)
 """Floors of the input weights tried per output (1.0: the plain metric); the tightest is kept."""
 
 
-def split_directions(n_states: int, n_actions: int, dtype=torch.float64) -> Tensor:
-    """The inputs, then ``z_state ± z_action`` for every state-action pair: ``[f, n_states + n_actions]``."""
+def split_directions(n_states: int, n_actions: int, scale: Tensor | None = None, dtype=torch.float64) -> Tensor:
+    """The inputs, then ``x_i ± u_j`` for every state-action pair: ``[f, n_states + n_actions]``.
+
+    The rows act on scaled inputs ``z = (x, u) / scale``; a pair's row is the difference or sum
+    in the original units (``scale_i z_i ± scale_j z_j``, divided by the larger scale), so that a
+    servo's kink ``u - v = const`` is a hyperplane of the direction also when ``v`` and ``u``
+    span different ranges. ``scale=None``: equal scales.
+    """
     d = n_states + n_actions
+    scale = torch.ones(d, dtype=dtype) if scale is None else scale.to(dtype)
     rows = [torch.eye(d, dtype=dtype)]
     for i in range(n_states):
         for j in range(n_states, d):
             for sign in (-1.0, 1.0):
                 row = torch.zeros(d, dtype=dtype)
-                row[i], row[j] = 1.0, sign
-                rows.append(row.unsqueeze(0))
+                row[i], row[j] = scale[i], sign * scale[j]
+                rows.append((row / scale[[i, j]].max()).unsqueeze(0))
     return torch.cat(rows)
 
 
@@ -129,8 +154,9 @@ def tree_nodes(features: Tensor, inputs: Tensor, target: Tensor, leaf_size: int,
     return nodes
 
 
-def fit_cells(inputs: Tensor, targets: Tensor, noise_radius: Tensor, n_actions: int, *, leaf_size: int | None = None,
-              overlap: float = 0.15, extend: float = 0.25, lipschitz_margin: float = 1.0) -> Cells:
+def fit_cells(inputs: Tensor, targets: Tensor, noise_radius: Tensor, n_actions: int, *, scale: Tensor | None = None,
+              leaf_size: int | None = None, overlap: float = 0.15, extend: float = 0.25,
+              lipschitz_margin: float = 1.0, use_hinges: bool = True) -> Cells:
     """Fit local affine models and their error intervals, one tree of cells per output.
 
     Per output, two trees are grown (splits along the inputs only, and also along the
@@ -144,6 +170,8 @@ def fit_cells(inputs: Tensor, targets: Tensor, noise_radius: Tensor, n_actions: 
         targets: ``[N, n]`` ``y = x+ - c_w - P x``.
         noise_radius: ``[n]`` ``w̄``, the noise's interval radius per state dimension.
         n_actions: the number of action columns of ``inputs``.
+        scale: ``[d]`` the units of ``inputs`` (``z = (x, u) / scale``), for the hinges' state-action
+            pair directions (:func:`split_directions`); ``None``: equal units.
         leaf_size: points per leaf (about; a node of ``2 leaf_size`` or more is split). Default
             ``10 (d + 1)``: fewer points per leaf under-estimate the Lipschitz constants in
             higher dimensions (with 32, one sampled state of a 6-D diffdrive model fell 1 mm
@@ -155,80 +183,108 @@ def fit_cells(inputs: Tensor, targets: Tensor, noise_radius: Tensor, n_actions: 
             on the edge of its speeds); a query there is farther from the data, which the
             per-query distance term of the error accounts for.
         lipschitz_margin: factor (>= 1) on the data's Lipschitz constants.
+        use_hinges: regress every leaf also on hinge features fitted to the output
+            (:func:`~torchrl_brsl.reach.hinges.fit_hinges`); ``False``: affine in ``z`` only.
 
     Returns:
         The stacked :class:`Cells`, root first for every output.
     """
     leaf_size = 10 * (inputs.shape[1] + 1) if leaf_size is None else int(leaf_size)
     n_states = inputs.shape[1] - n_actions
-    directions = split_directions(n_states, n_actions, inputs.dtype)
+    directions = split_directions(n_states, n_actions, dtype=inputs.dtype)
     features = inputs @ directions.T
+    kinks = split_directions(n_states, n_actions, scale, inputs.dtype)  # the hinges' candidate directions
     axes = torch.zeros(directions.shape[0], dtype=torch.bool)
     axes[:inputs.shape[1]] = True
-    per_output, chosen = [], []
+    no_hinges = (inputs.new_zeros(0, inputs.shape[1]), inputs.new_zeros(0), inputs.new_zeros(0))
+    kinks_features = inputs @ kinks.T
+    per_output, chosen, hinges = [], [], []
     for k in range(targets.shape[1]):
-        candidates, metrics = [], []
-        for allowed in (axes, torch.ones_like(axes)):  # splits along the inputs only, or also the pairs
-            nodes = tree_nodes(features, inputs, targets[:, k], leaf_size, allowed)
-            leaves = [node for node in nodes if len(node[0]) < 2 * leaf_size] or nodes[:1]
-            boxes = _cell_boxes(features, nodes[0][1], leaves, overlap, extend, allowed)
-            fits = [_affine_fit(inputs[member], targets[member, k:k + 1]) for *_, member in boxes]
-            relevance = input_relevance(torch.stack([theta[1:] for theta, _ in fits]), floor=0.0)[0]
-            metrics += [relevance.clamp_min(floor) for floor in METRIC_FLOORS]
-            candidates += [_output_cells(inputs, boxes, fits, noise_radius[k], weights, directions, lipschitz_margin)
-                           for weights in metrics[-len(METRIC_FLOORS):]]
-        best = min(range(len(candidates)), key=lambda i: _probe_error(candidates[i], metrics[i], inputs, directions,
-                                                                       n_states))
-        per_output.append(candidates[best])
-        chosen.append(metrics[best])
+        options = [no_hinges]
+        if use_hinges:
+            options.append(fit_hinges(kinks_features, kinks, inputs, targets[:, k], noise_radius[k]))
+        candidates = []  # (cells, weights, hinges)
+        for hinge_dirs, knots, coefficients in options:
+            target = targets[:, k] - hinge_features(inputs, hinge_dirs, knots) @ coefficients  # what the hinges leave
+            for allowed in (axes, torch.ones_like(axes)):  # splits along the inputs only, or also the pairs
+                nodes = tree_nodes(features, inputs, target, leaf_size, allowed)
+                leaves = [node for node in nodes if len(node[0]) < 2 * leaf_size] or nodes[:1]
+                boxes = _cell_boxes(features, nodes[0][1], leaves, overlap, extend, allowed)
+                fits = [_affine_fit(inputs[fit], target[fit, None]) for _, _, fit, _ in boxes]
+                relevance = input_relevance(torch.stack([theta[1:] for theta, _ in fits]), floor=0.0)[0]
+                for weights in (relevance.clamp_min(floor) for floor in METRIC_FLOORS):
+                    parts = _output_cells(inputs, boxes, fits, noise_radius[k], weights, directions, lipschitz_margin)
+                    parts[2] = torch.cat((parts[2], coefficients.expand(parts[2].shape[0], -1)), dim=-1)
+                    candidates.append((parts, weights, (hinge_dirs, knots)))
+        best = min(candidates, key=lambda c: _probe_error(*c, inputs, directions, n_states))
+        per_output.append(best[0])
+        chosen.append(best[1])
+        hinges.append(best[2])
+    n_hinges = max(len(knots) for _, knots in hinges)
+    hinge_directions = torch.stack([_pad_rows(a, n_hinges, 0.0) for a, _ in hinges])
+    hinge_knots = torch.stack([_pad_rows(c, n_hinges, 1.0) for _, c in hinges])
     width = max(parts[0].shape[0] for parts in per_output)
     fill = (torch.inf, -torch.inf, 0.0, 0.0, 0.0, 0.0, 0.0, torch.inf)
+    for parts in per_output:  # slopes of every output over d + n_hinges columns
+        parts[2] = torch.nn.functional.pad(parts[2], (0, inputs.shape[1] + n_hinges - parts[2].shape[1]))
     stacked = [torch.stack([_pad_rows(parts[i], width, fill[i]) for parts in per_output]) for i in range(len(fill))]
-    return Cells(directions, torch.stack(chosen), *stacked)
+    members = torch.stack([parts[-1] for parts in per_output])
+    return Cells(directions, torch.stack(chosen), *stacked, hinge_directions, hinge_knots, members)
 
 
 PROBE_RADII = (0.01, 0.03, 0.1)
 """Radii (scaled units, on the state inputs) of the probe sets that rank candidate cells."""
 
 
-def _probe_error(parts: list[Tensor], weights: Tensor, inputs: Tensor, directions: Tensor, n_states: int) -> float:
+def _probe_error(parts: list[Tensor], weights: Tensor, hinges: tuple[Tensor, Tensor], inputs: Tensor,
+                 directions: Tensor, n_states: int) -> float:
     """Mean error bound over boxes of :data:`PROBE_RADII` around every data point (on the state
     inputs; uncovered probes count as twice the largest leaf error)."""
-    cells = Cells(directions, weights.unsqueeze(0), *(part.unsqueeze(0) for part in parts))
+    cells = Cells(directions, weights.unsqueeze(0), *(part.unsqueeze(0) for part in parts[:-1]),
+                  *(part.unsqueeze(0) for part in hinges), parts[-1].unsqueeze(0))
+    centre_distance = leaf_distance(cells, inputs, inputs)  # [N, 1, M]
     total = 0.0
     for radius in PROBE_RADII:
         z_radius = torch.zeros_like(inputs)
         z_radius[:, :n_states] = radius
-        _, errors, covered = leaf_bounds(cells, inputs, z_radius, directions[:, :n_states].abs().sum(-1) * radius)
+        h_center = (inputs @ hinges[0].T - hinges[1]).unsqueeze(-2)  # [N, 1, H]
+        h_radius = (z_radius @ hinges[0].abs().T).unsqueeze(-2)
+        distance = centre_distance + (weights * z_radius).norm(dim=-1)[:, None, None]
+        _, errors, covered = leaf_bounds(cells, inputs, z_radius, directions[:, :n_states].abs().sum(-1) * radius,
+                                         (h_center - h_radius).clamp_min(0), (h_center + h_radius).clamp_min(0),
+                                         distance)
         total += float(torch.where(covered, errors[:, 0], 2 * parts[4].max()).mean())
     return total
 
 
 def _cell_boxes(features: Tensor, root: Tensor, leaves: list[tuple], overlap: float, extend: float,
                 allowed: Tensor) -> list[tuple]:
-    """``(low, high, member)`` per leaf: its region (extended by ``extend`` where it reaches the
-    root's edge) and the data of the region widened by ``overlap`` (the fit's points)."""
+    """``(low, high, fit, index)`` per leaf: its region (extended by ``extend`` where it reaches
+    the root's edge), the data of the region widened by ``overlap`` (the fit's points, a mask)
+    and the data of the region itself (indices)."""
     lo_all, hi_all = root
     span = torch.where(allowed, extend * (hi_all - lo_all), 0.0)
     boxes = []
-    for _, (lo, hi) in leaves:
+    for index, (lo, hi) in leaves:
         pad = torch.where(allowed, overlap * (hi - lo), 0.0)
-        member = ((features >= lo - pad) & (features <= hi + pad)).all(-1)
+        fit = ((features >= lo - pad) & (features <= hi + pad)).all(-1)
+        fit[index] = True
         low_edge, high_edge = (lo <= lo_all) & allowed, (hi >= hi_all) & allowed
-        boxes.append((lo - span * low_edge, hi + span * high_edge, member))
+        boxes.append((lo - span * low_edge, hi + span * high_edge, fit, index))
     return boxes
 
 
 def _output_cells(inputs: Tensor, boxes: list[tuple], fits: list[tuple], noise_radius: Tensor, weights: Tensor,
                   directions: Tensor, margin: float) -> list[Tensor]:
-    """The stacked cells of one output in the metric ``weights`` (the fields of :class:`Cells`
-    after ``directions``)."""
-    cells = []
-    for (lo, hi, member), (theta, residual) in zip(boxes, fits):
-        errors, centre, lipschitz, delta = _bound_cell(inputs[member], residual[:, 0], noise_radius, weights, margin)
+    """The stacked cells of one output in the metric ``weights``: the fields of :class:`Cells`
+    from ``low`` to ``score``, then ``members`` ``[N]``."""
+    cells, members = [], torch.empty(inputs.shape[0], dtype=torch.long)
+    for leaf, ((lo, hi, fit, index), (theta, residual)) in enumerate(zip(boxes, fits)):
+        errors, centre, lipschitz, delta = _bound_cell(inputs[fit], residual[:, 0], noise_radius, weights, margin)
         cells.append((lo, hi, theta[1:, 0], theta[0, 0] + centre, errors, lipschitz, delta,
                       errors / noise_radius.clamp_min(1e-12)))
-    return [torch.stack(parts) for parts in zip(*cells)]
+        members[index] = leaf
+    return [torch.stack(parts) for parts in zip(*cells)] + [members]
 
 
 def _pad_rows(values: Tensor, rows: int, fill: float) -> Tensor:
@@ -268,7 +324,8 @@ def _bound_cell(z: Tensor, residual: Tensor, noise_radius: Tensor, weights: Tens
     """Error interval of one output on one cell, in the weighted metric (module docstring).
 
     Returns:
-        ``(half-width, centre, lipschitz, δ)``, scalars.
+        ``(half-width, centre, lipschitz, δ)``, scalars: ``g(z) ∈ centre ± (half-width +
+        lipschitz (D - δ)_+)`` at distance ``D`` from the data.
     """
     weighted = z * weights  # [s, d]
     diameter = (weighted.amax(0) - weighted.amin(0)).norm().clamp_min(1e-12)
@@ -288,7 +345,7 @@ def _bound_cell(z: Tensor, residual: Tensor, noise_radius: Tensor, weights: Tens
     delta = _nearest_distance(weighted).max()
     upper = upper + noise_radius + lipschitz * delta
     lower = lower - noise_radius - lipschitz * delta
-    return (upper - lower) / 2, (upper + lower) / 2, lipschitz, _nearest_distance(z).max()
+    return (upper - lower) / 2, (upper + lower) / 2, lipschitz, delta
 
 
 def _nearest_distance(points: Tensor) -> Tensor:
@@ -297,25 +354,31 @@ def _nearest_distance(points: Tensor) -> Tensor:
     return torch.as_tensor(np.asarray(dist)[:, 1], dtype=points.dtype)
 
 
-def leaf_bounds(cells: Cells, z_center: Tensor, z_radius: Tensor, phi_radius: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def leaf_bounds(cells: Cells, z_center: Tensor, z_radius: Tensor, phi_radius: Tensor, hinge_low: Tensor,
+                hinge_high: Tensor, distance: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """Per output, one leaf's affine model and an error bound valid over a whole query set.
 
     The leaves tile the data's region, so every ``z`` of the query set lies in one of the
-    leaves its interval hull meets; there ``h(z) ∈ ℓ_l(z) ± e_l``. The model ``ℓ_a`` of the leaf
-    containing the query's centre is used, with the error ``max_l (e_l + max_z |ℓ_l(z) - ℓ_a(z)|)``
-    over the met leaves ``l`` (the second term over the query's ``z``-box; 0 for ``l = a``).
+    leaves its interval hull meets; there ``h(z) ∈ ℓ_l(z) ± (e_l + L_l (D_l - δ_l)_+)``, with
+    ``D_l`` the farthest the query's points lie from leaf ``l``'s data. The model ``ℓ_a`` of the
+    leaf containing the query's centre is used, with the error ``max_l (e_l + L_l (D_l - δ_l)_+
+    + max_z |ℓ_l(z) - ℓ_a(z)|)`` over the met leaves ``l`` (the last term over the query's
+    ``z``-box; 0 for ``l = a``).
 
     Args:
         cells: leaves of ``n`` outputs, boxes in the split directions.
         z_center, z_radius: ``[..., d]`` the query's ``z``-box (scaled units).
         phi_radius: ``[..., f]`` its exact radius along each split direction (around
             ``directions @ z_center``).
+        hinge_low, hinge_high: ``[..., n, H]`` the range of each output's hinge features over
+            the query set.
+        distance: ``[..., n, M]`` ``D_l`` in each output's weighted metric (:func:`leaf_distance`).
 
     Returns:
         ``(index [..., n], errors [..., n], covered [...])``: the leaf whose model is used, the
         error half-width, and whether the query lies inside the data's region.
     """
-    n, n_leaves, d = cells.slopes.shape
+    n, n_leaves, width = cells.slopes.shape
     phi = (z_center @ cells.directions.T)[..., None, None, :]  # [..., 1, 1, f]
     radius = phi_radius[..., None, None, :]
     # > 0 where the query box misses a leaf (float comparisons: much faster than bool ones here)
@@ -323,16 +386,44 @@ def leaf_bounds(cells: Cells, z_center: Tensor, z_radius: Tensor, phi_radius: Te
     centre_out = torch.maximum(cells.low - phi, phi - cells.high).amax(-1)
     index = torch.where(centre_out <= 0, cells.score, torch.inf).argmin(-1)  # [..., n]
     flat = index + torch.arange(n, device=index.device) * n_leaves
-    prediction = (z_center @ cells.slopes.reshape(n * n_leaves, d).T).unflatten(-1, (n, n_leaves)) + cells.intercepts
+    # every leaf's model at the query's centre, the hinges at the middle of their range
+    center = torch.cat((z_center.unsqueeze(-2).expand(*hinge_low.shape[:-1], -1), (hinge_low + hinge_high) / 2), -1)
+    half = torch.cat((z_radius.unsqueeze(-2).expand(*hinge_low.shape[:-1], -1), (hinge_high - hinge_low) / 2), -1)
+    prediction = torch.einsum("...kw,kmw->...km", center, cells.slopes) + cells.intercepts  # [..., n, M]
     chosen = prediction.gather(-1, index.unsqueeze(-1))
-    slope_gap = cells.slopes - cells.slopes.reshape(n * n_leaves, d)[flat].unsqueeze(-2)  # [..., n, M, d]
-    model_gap = (prediction - chosen).abs() + (slope_gap.abs() @ z_radius[..., None, :, None]).squeeze(-1)
-    errors = torch.where(gap_out <= 0, cells.errors + model_gap, -torch.inf).amax(-1)
+    slope_gap = cells.slopes - cells.slopes.reshape(n * n_leaves, width)[flat].unsqueeze(-2)  # [..., n, M, d + H]
+    model_gap = (prediction - chosen).abs() + (slope_gap.abs() @ half.unsqueeze(-1)).squeeze(-1)
+    bound = cells.errors + cells.lipschitz * (distance - cells.delta).clamp_min(0) + model_gap
+    errors = torch.where(gap_out <= 0, bound, -torch.inf).amax(-1)
     missed = ~torch.isfinite(errors)  # outside every leaf (not covered): all of them, finite
     if bool(missed.any()):
-        errors = torch.where(missed, (cells.errors + model_gap).amax(-1), errors)
+        errors = torch.where(missed, bound.amax(-1), errors)
     covered = ~missed.any(-1) & (centre_out.amin(-1) <= 0).all(-1) & (_root_excess(cells, phi, radius) <= 0)
     return index, errors, covered
+
+
+def leaf_distance(cells: Cells, points: Tensor, z_center: Tensor, z_radius: Tensor | None = None,
+                  weighted_points: Tensor | None = None) -> Tensor:
+    """``D_l``: how far a query box lies at most from each leaf's data, ``[..., n, M]``.
+
+    The distance of the centre ``z_center`` ``[..., d]`` to the leaf's nearest data point plus
+    the box's radius ``z_radius`` ``[..., d]`` (both in each output's weighted metric): by the
+    triangle inequality every ``z`` of the box is at most that far from the leaf's data.
+
+    Args:
+        points: ``[N, d]`` the scaled data that ``cells.members`` refers to.
+        weighted_points: ``[n, N, d]`` ``points * weights`` per output, when already at hand.
+    """
+    n, n_leaves = cells.errors.shape
+    weighted = points * cells.weights[:, None, :] if weighted_points is None else weighted_points
+    query = (z_center[..., None, :] * cells.weights).reshape(-1, n, z_center.shape[-1]).transpose(0, 1)  # [n, B, d]
+    dist = torch.cdist(query, weighted)  # [n, B, N]
+    leaf = cells.members.unsqueeze(1).expand_as(dist)
+    nearest = dist.new_zeros(n, dist.shape[1], n_leaves).scatter_reduce_(-1, leaf, dist, "amin", include_self=False)
+    nearest = nearest.transpose(0, 1).reshape(*z_center.shape[:-1], n, n_leaves)
+    if z_radius is None:
+        return nearest
+    return nearest + (z_radius[..., None, :] * cells.weights).norm(dim=-1).unsqueeze(-1)
 
 
 def _root_excess(cells: Cells, phi: Tensor, radius: Tensor) -> Tensor:

@@ -8,7 +8,8 @@ import torch
 from tensordict import TensorDict
 from torch import Tensor, nn
 
-from torchrl_brsl.reach.cells import Cells, fit_cells, leaf_bounds
+from torchrl_brsl.reach.cells import Cells, fit_cells, leaf_bounds, leaf_distance
+from torchrl_brsl.reach.hinges import relu_relaxation
 from torchrl_brsl.reach.lipschitz import covering_radius, residual_lipschitz
 from torchrl_brsl.sets import Zonotope, pad_generators, reduce_girard
 from torchrl_brsl.sets._checks import check_tensor, skip_value_checks
@@ -187,7 +188,7 @@ class DataDrivenReach(nn.Module):
             u_minus=u_minus,
         )
         if method == "local":
-            params.update(_local_params(fit_cells(scaled, target, w_g.abs().sum(-1), m, leaf_size=leaf_size,
+            params.update(_local_params(fit_cells(scaled, target, w_g.abs().sum(-1), m, scale=scale, leaf_size=leaf_size,
                                                   overlap=overlap, extend=extend, lipschitz_margin=lipschitz_margin),
                                         scale, free, select, w_c))
         return cls(params, fixed, delta, max_generators)
@@ -200,8 +201,10 @@ class DataDrivenReach(nn.Module):
 
     @classmethod
     def from_env(cls, env, noise: Zonotope, steps: int = 500, *, state_key="state", action_key="action",
-                 progress: bool = False, **kwargs) -> DataDrivenReach:
+                 progress: bool = False, generator: torch.Generator | None = None, **kwargs) -> DataDrivenReach:
         """Collect ``steps`` random-input transitions in ``env`` (an empty copy of the task) and fit.
+
+        ``generator`` draws the random inputs (:func:`collect_offline_data`); ``kwargs`` go to :meth:`fit`.
 
         Examples:
             >>> info = envs.safety_info("diffdrive_nav")
@@ -211,7 +214,8 @@ class DataDrivenReach(nn.Module):
         """
         from torchrl_brsl.reach.offline import collect_offline_data
 
-        data = collect_offline_data(env, steps, state_key=state_key, action_key=action_key, progress=progress)
+        data = collect_offline_data(env, steps, state_key=state_key, action_key=action_key, progress=progress,
+                                    generator=generator)
         return cls.from_data(data, noise, **kwargs)
 
     # ----------------------------------------------------------------- properties
@@ -357,21 +361,27 @@ class DataDrivenReach(nn.Module):
             (generators reduced to ``max_generators`` when set).
         """
         free, scale = self._free_index, self.input_scale
-        directions = self.cell_directions  # [f, d] in scaled units
+        n_free, cells = len(free), self._cells
         z_center = torch.cat((center[..., free], action), dim=-1) / scale
-        z_generators = generators[..., free, :] / scale[:len(free), None]  # [..., n_F, p] (actions are exact)
-        phi_radius = (directions[:, :len(free)] @ z_generators).abs().sum(-1)  # exact interval hull per direction
+        z_generators = generators[..., free, :] / scale[:n_free, None]  # [..., n_F, p] (actions are exact)
+        phi_radius = (cells.directions[:, :n_free] @ z_generators).abs().sum(-1)  # exact interval hull per direction
         z_radius = torch.cat((z_generators.abs().sum(-1), torch.zeros_like(action)), dim=-1)
-        index, errors, covered = leaf_bounds(self._cells, z_center, z_radius, phi_radius)  # [..., n]
+        # hinge pre-activations over the set, exactly: [..., n, H]
+        hinge_center = torch.einsum("...d,khd->...kh", z_center, cells.hinge_directions) - cells.hinge_knots
+        hinge_radius = torch.einsum("khf,...fp->...khp", cells.hinge_directions[..., :n_free], z_generators).abs().sum(-1)
+        slope, offset_h, hinge_low, hinge_high = relu_relaxation(hinge_center, hinge_radius)
+        distance = leaf_distance(cells, self._scaled_data, z_center.detach(), z_radius.detach(), self._weighted_data)
+        index, errors, covered = leaf_bounds(cells, z_center, z_radius, phi_radius, hinge_low, hinge_high, distance)
         n, m = self.state_dim, action.shape[-1]
-        packed = self._leaf_rows[index + self._output_index * self.cell_low.shape[1]]  # [..., n, n + m + 3]
-        A, B, offset, lipschitz, delta = packed.split((n, m, 1, 1, 1), dim=-1)
+        packed = self._leaf_rows[index + self._output_index * self.cell_low.shape[1]]  # [..., n, n + m + 1 + H]
+        A, B, offset, theta = packed.split((n, m, 1, cells.hinge_knots.shape[-1]), dim=-1)
+        # the hinges' relaxation relu(s) ∈ λ s + μ ± μ folds into the chosen leaf's affine model
+        along = torch.einsum("...kh,khd->...kd", theta * slope, cells.hinge_directions) / scale  # [..., n, d]
+        A = A.index_add(-1, self._free_tensor, along[..., :n_free])
+        B = B + along[..., n_free:]
+        offset = offset + (theta * (offset_h - slope * cells.hinge_knots)).sum(-1, keepdim=True)
+        errors = errors + (theta.abs() * offset_h).sum(-1)
         center = (A @ center.unsqueeze(-1) + B @ action.unsqueeze(-1) + offset).squeeze(-1)
-        # a cell's bound holds within its data's covering radius δ: a set whose centre lies
-        # farther from the data gets L times the excess (the data are assumed to cover the set
-        # around its centre, as the paper assumes for every query)
-        far = self._data_distance_scaled(z_center.detach()).unsqueeze(-1) - delta.squeeze(-1)
-        errors = errors + lipschitz.squeeze(-1) * far.clamp_min(0)
         error = torch.diag_embed(errors)
         if self._diagonal_noise is not None:
             error = error + torch.diag_embed(self._diagonal_noise).expand_as(error)
@@ -386,11 +396,12 @@ class DataDrivenReach(nn.Module):
 
     @property
     def _leaf_rows(self) -> Tensor:
-        """Per (output, leaf), flattened: ``[A row, B row, offset, L, δ]`` ``[n M, n + m + 3]``."""
+        """Per (output, leaf), flattened: ``[A row, B row, offset, hinge slopes]`` ``[n M, n + m + 1 + H]``."""
         key = ("leaf rows",)
         if key not in self._cache:
+            d = self.cell_directions.shape[1]
             parts = (self.cell_state_rows, self.cell_input_rows, self.cell_offset.unsqueeze(-1),
-                     self.cell_lipschitz.unsqueeze(-1), self.cell_delta.unsqueeze(-1))
+                     self.cell_slopes[..., d:])
             self._cache[key] = torch.cat(parts, dim=-1).flatten(0, 1)
         return self._cache[key]
 
@@ -400,7 +411,31 @@ class DataDrivenReach(nn.Module):
         if key not in self._cache:
             self._cache[key] = Cells(self.cell_directions, self.cell_weights, self.cell_low, self.cell_high,
                                      self.cell_slopes, self.cell_intercepts, self.cell_errors, self.cell_lipschitz,
-                                     self.cell_delta, self.cell_score)
+                                     self.cell_delta, self.cell_score, self.cell_hinge_directions,
+                                     self.cell_hinge_knots, self.cell_members)
+        return self._cache[key]
+
+    @property
+    def _scaled_data(self) -> Tensor:
+        """The offline regressors in scaled units: ``[N, d]``."""
+        key = ("scaled data",)
+        if key not in self._cache:
+            self._cache[key] = torch.cat((self.x_minus[:, self.free_dims], self.u_minus), dim=1) / self.input_scale
+        return self._cache[key]
+
+    @property
+    def _weighted_data(self) -> Tensor:
+        """:attr:`_scaled_data` in each output's metric of the cells: ``[n, N, d]``."""
+        key = ("weighted data",)
+        if key not in self._cache:
+            self._cache[key] = self._scaled_data * self.cell_weights[:, None, :]
+        return self._cache[key]
+
+    @property
+    def _free_tensor(self) -> Tensor:
+        key = ("free tensor",)
+        if key not in self._cache:
+            self._cache[key] = torch.tensor(self.free_dims, dtype=torch.long, device=self.cell_low.device)
         return self._cache[key]
 
     @property
@@ -487,10 +522,7 @@ class DataDrivenReach(nn.Module):
 
     def _data_distance_scaled(self, z: Tensor) -> Tensor:
         """Distance ``[...]`` of scaled regressors ``z`` ``[..., d]`` to the nearest data point."""
-        key = ("scaled data",)
-        if key not in self._cache:
-            self._cache[key] = torch.cat((self.x_minus[:, self.free_dims], self.u_minus), dim=1) / self.input_scale
-        data = self._cache[key].to(z)
+        data = self._scaled_data.to(z)
         return torch.cdist(z.reshape(-1, z.shape[-1]), data).amin(-1).reshape(z.shape[:-1])
 
     def data_distance(self, states: Tensor, actions: Tensor) -> Tensor:
@@ -554,15 +586,17 @@ def stack_steps(centers: Sequence[Tensor], generators: Sequence[Tensor]) -> Zono
 def _local_params(cells: Cells, scale: Tensor, free: list[int], select: Tensor, noise_center: Tensor) -> dict:
     """The cells' models in state units: output ``k`` of cell ``c`` is
     ``x+_k = A_kc x + B_kc u + k_kc + [-e_kc, e_kc] + W_k``."""
-    n_free = len(free)
-    slopes = cells.slopes / scale  # [n, M, d] per unscaled input
+    n_free, d = len(free), scale.shape[0]
+    slopes = cells.slopes[..., :d] / scale  # [n, M, d] per unscaled input
     state_rows = select.unsqueeze(1).expand(-1, slopes.shape[1], -1).clone()  # [n, M, n]
     state_rows[:, :, free] += slopes[..., :n_free]
     return dict(cell_directions=cells.directions, cell_weights=cells.weights, cell_low=cells.low,
                 cell_high=cells.high, cell_state_rows=state_rows, cell_input_rows=slopes[..., n_free:].contiguous(),
                 cell_offset=cells.intercepts + noise_center.unsqueeze(-1), cell_errors=cells.errors,
                 cell_lipschitz=cells.lipschitz, cell_delta=cells.delta, cell_score=cells.score,
-                cell_slopes=cells.slopes, cell_intercepts=cells.intercepts)
+                cell_slopes=cells.slopes, cell_intercepts=cells.intercepts,
+                cell_hinge_directions=cells.hinge_directions, cell_hinge_knots=cells.hinge_knots,
+                cell_members=cells.members)
 
 
 def _domain(domain, size: int, dtype: torch.dtype) -> tuple[Tensor, Tensor]:

@@ -179,5 +179,34 @@ class SaturatedThrustPoint(BlackBoxSystem):
         return (-x[..., 2:]).clamp(-1.0, 1.0)
 
 
+class CappedVelocityServo(BlackBoxSystem):
+    """Planar point whose velocity servo has a hard acceleration cap (a multirotor's velocity mode).
+
+    State ``(x, y, vx, vy)``, action: the commanded velocity ``(ux, uy)`` in ``[-2, 2]^2``,
+    ``dt = 0.1``: ``v+ = v + clip(gain dt (u - v), -a_max dt, a_max dt)``, ``p+ = p + dt v+``.
+    The servo is linear only on the ramp ``|u - v| < a_max / gain`` and saturates beyond: its
+    kinks lie along ``u - v``, and most random commands are saturated.
+    """
+
+    def __init__(self, max_acceleration: float = 4.0, gain: float = 8.0, max_speed: float = 2.0):
+        d = torch.float64
+        super().__init__(dt=0.1, state_low=torch.tensor([-2.0, -2.0, -max_speed, -max_speed], dtype=d),
+                         state_high=torch.tensor([2.0, 2.0, max_speed, max_speed], dtype=d),
+                         action_low=-max_speed * torch.ones(2, dtype=d), action_high=max_speed * torch.ones(2, dtype=d),
+                         noise_half_width=torch.tensor([0.0, 0.0, 0.01, 0.01], dtype=d),
+                         translation_invariant_dims=(0, 1))
+        self.max_acceleration, self.gain = max_acceleration, gain
+
+    def dynamics(self, x: Tensor, u: Tensor) -> Tensor:
+        p, v = x[..., :2], x[..., 2:]
+        cap = self.max_acceleration * self.dt
+        v_next = v + (self.gain * self.dt * (u - v)).clamp(-cap, cap)
+        return torch.cat((p + self.dt * v_next, v_next), dim=-1)
+
+    def braking(self, x: Tensor) -> Tensor:
+        """Command zero velocity."""
+        return torch.zeros_like(x[..., 2:])
+
+
 def _uniform(low: Tensor, high: Tensor, num: int, generator: torch.Generator | None) -> Tensor:
     return low + (high - low) * torch.rand(num, low.shape[-1], generator=generator, dtype=low.dtype)
