@@ -81,13 +81,18 @@ def collect(root: str | Path, episodes: int | None = None, reuse: bool = False) 
     return out
 
 
+def _format(fmt: str, value: float) -> str:
+    text = fmt.format(value)
+    return text.lstrip("-") if float(text) == 0 else text  # no "-0"
+
+
 def _mean_std(values, fmt: str) -> str:
     values = np.asarray([v for v in values if not np.isnan(v)], dtype=float)
     if values.size == 0:
         return "–"
     if values.size == 1:
-        return fmt.format(values[0])
-    return f"{fmt.format(values.mean())} ± {fmt.format(values.std())}"
+        return _format(fmt, values[0])
+    return f"{_format(fmt, values.mean())} ± {_format(fmt, values.std())}"
 
 
 def cell(rows: list[dict] | None, key: str, fmt: str | None) -> str:

@@ -75,6 +75,7 @@ def test_table_cells_are_mean_and_std_over_seeds():
     assert cell(rows, "compute_time", None) == "2.00 ± 0.30"
     assert cell(rows[:1], "mean_reward", "{:.0f}") == "10" and cell(rows, "seeds", None) == "2"
     assert cell(None, "mean_reward", "{:.0f}") == "–" and cell(rows, "goal_rate", "{:.0f}") == "–"
+    assert cell([{"mean_reward": -0.3}], "mean_reward", "{:.0f}") == "0"
 
 
 def test_table_prints_both_tables_in_the_paper_layout(tmp_path, capsys):
