@@ -399,7 +399,9 @@ class PlanChecker:
         positions = _take(sets.generators.transpose(-1, -2), self._position_index).transpose(-1, -2)
         floor = torch.diag_embed(positions.new_full(positions.shape[:-1], MIN_SET_RADIUS))
         projected = reduce_girard(torch.cat((positions, floor), dim=-1), self.set_width)  # [B, T, d, ps]
-        self._checker = ZonotopeCollisionChecker(projected.unsqueeze(-3), obstacle_generators.unsqueeze(-4))
+        # used once per check: deduplicating its facets (O(K^2) per pair) costs more than it saves
+        self._checker = ZonotopeCollisionChecker(projected.unsqueeze(-3), obstacle_generators.unsqueeze(-4),
+                                                 deduplicate=False)
         self._columns = tuple(w.contiguous() for w in self._checker.table.weights.unbind(-1))
         self._obstacle_generators = None  # the cached table no longer matches any obstacle batch
 
