@@ -1,10 +1,10 @@
 """The layer behind a random policy on a task, local against global model, servo caps on and off.
 
 Per setting: collisions (MuJoCo contacts) per episode, mean speed against the same policy
-without the layer, the shares of steps with intervention, failsafe and ``unverified_hold``,
-and the median position radius of the final reachable set of the executed plans. One-action
-proposals (``n_plan = 1``) then the task's braking steps (``--n-brk`` for the uncapped
-servos), stop slack 0.15, the facet-QP adjuster, ``--steps`` offline transitions.
+without the layer, the shares of steps with intervention, failsafe, ``unverified_hold`` and
+``out_of_data``, and the median position radius of the final reachable set of the executed
+plans. One-action proposals (``n_plan = 1``) then the task's braking steps (``--n-brk`` for
+the uncapped servos), stop slack 0.15, the facet-QP adjuster, ``--steps`` offline transitions.
 
 Usage: ``python benchmarks/bench_closed_loop.py [--task point_boxes] [--steps 1000] [--episodes 40]
 [--servo capped|uncapped|both] [--models global,local]``
@@ -52,7 +52,7 @@ def run(task: str, options: dict, reach: DataDrivenReach | None, n_brk: int, epi
         speeds.append(td["next", "speed"].squeeze(-1))
         if reach is not None:
             flags.append(torch.stack([td["next", "brsl", key].squeeze(-1).float()
-                                      for key in ("intervened", "failsafe", "unverified_hold")], -1))
+                                      for key in ("intervened", "failsafe", "unverified_hold", "out_of_data")], -1))
         done = td["next", "done"].squeeze(-1)
         collided += current[done].tolist()
         done_episodes += int(done.sum())
@@ -61,9 +61,9 @@ def run(task: str, options: dict, reach: DataDrivenReach | None, n_brk: int, epi
         if done.any():
             td["_reset"] = done.unsqueeze(-1)
             td = env.reset(td)
-    shares = torch.cat(flags).mean(0).tolist() if flags else [float("nan")] * 3
+    shares = torch.cat(flags).mean(0).tolist() if flags else [float("nan")] * 4
     return {"collisions": sum(collided), "episodes": len(collided), "speed": torch.cat(speeds).mean().item(),
-            "intervened": shares[0], "failsafe": shares[1], "hold": shares[2],
+            "intervened": shares[0], "failsafe": shares[1], "hold": shares[2], "out_of_data": shares[3],
             "radius": torch.cat(radii).median().item() if radii else float("nan")}
 
 
@@ -91,7 +91,7 @@ def main() -> None:
     info = envs.safety_info(task)
     noise = Zonotope(info.noise_center.double(), info.noise_generators.double())
     print(f"{'servo':<10}{'model':<8}{'collisions':>12}{'speed':>8}{'vs none':>9}{'interv.':>9}{'failsafe':>9}"
-          f"{'hold':>7}{'radius':>8}")
+          f"{'hold':>7}{'no data':>9}{'radius':>8}")
     uncapped = UNCAPPED.get(task, {"max_acceleration": None})
     settings = (("capped", {}, info.n_brk), ("uncapped", uncapped, args.n_brk or info.n_brk))
     for servo, options, n_brk in (s for s in settings if args.servo in (s[0], "both")):
@@ -105,7 +105,7 @@ def main() -> None:
             row = run(task, options, reach, n_brk, args.episodes, args.episode_steps)
             print(f"{servo:<10}{method:<8}{row['collisions']:>6}/{row['episodes']:<5}{row['speed']:>8.3f}"
                   f"{row['speed'] / free['speed']:>9.2f}{row['intervened']:>9.2f}{row['failsafe']:>9.2f}"
-                  f"{row['hold']:>7.2f}{row['radius']:>8.3f}", flush=True)
+                  f"{row['hold']:>7.2f}{row['out_of_data']:>9.2f}{row['radius']:>8.3f}", flush=True)
 
 
 if __name__ == "__main__":
