@@ -11,6 +11,7 @@ from torch import Tensor, nn
 from torchrl.data import Bounded, Composite, Unbounded
 from torchrl.envs import Transform
 
+from torchrl_brsl.safety.layer import write_step_outputs
 from torchrl_brsl.sets.facets import facet_normals, facet_supports
 
 
@@ -188,13 +189,8 @@ class ActionFilter(Transform):
         return tensordict
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
-        next_tensordict.set(self.safe_action_key, tensordict.get(self.action_key))
-        next_tensordict.set(self.diagnostics_key, tensordict.get(self.diagnostics_key).clone())
-        if self.penalty:
-            unsafe = tensordict.get((self.diagnostics_key, "intervened"))
-            reward = next_tensordict.get(self.reward_key)
-            next_tensordict.set(self.reward_key, reward - self.penalty * unsafe.to(reward.dtype).reshape(reward.shape))
-        return next_tensordict
+        return write_step_outputs(tensordict, next_tensordict, self.action_key, self.safe_action_key,
+                                  self.diagnostics_key, self.reward_key, self.penalty)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         raise RuntimeError(f"{type(self).__name__} acts inside an environment's step: append it to a TransformedEnv.")

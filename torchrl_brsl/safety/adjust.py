@@ -119,34 +119,11 @@ class GradientAdjuster:
         Jacobian of the position ``p`` of its set; likewise the stop excess through the final
         centre. Every iterate is still checked exactly by :meth:`PlanChecker.evaluate`.
         """
-        low, high = checker.action_low, checker.action_high
-        scale = (high - low).clamp_min(1e-12)
-        iterations = torch.zeros(plan.shape[0], dtype=torch.long, device=plan.device)
-        position_jacobian = affine.position_jacobian.flatten(0, 1)  # [T d, N]
-        threshold = 1 + self.target_margin
-        for iteration in range(self.max_iterations + 1):
-            evaluation, gauge = checker._evaluate(x0, plan, obstacle_centers, obstacle_generators, obstacle_mask,
-                                                  detail=True)
-            active = ~evaluation.safe
-            out_of_time = self.time_budget is not None and time.perf_counter() - start > self.time_budget
-            if iteration == self.max_iterations or out_of_time or not bool(active.any()):
-                break
-            values = evaluation.values  # masked: inf; non-finite: 0 (no gradient, as with autograd)
-            picked = gauge.products.gather(-1, gauge.best.unsqueeze(-1)).squeeze(-1)  # [B, T, K]
-            coef = torch.where((values < threshold) & (values > 0), picked.sign(), 0.0)
-            weights = _picked_weights(checker, gauge.best)  # [B, T, K, d]
-            per_step = (coef.unsqueeze(-2) @ weights).flatten(1)  # [B, T d]
-            grad = per_step @ position_jacobian  # [B, N]
-            if checker.stop_dims:
-                final = _stop_centres(checker, evaluation.centers)  # [B, s]
-                excess = evaluation.stop_excess.unsqueeze(-1)
-                attains = (final.abs() - evaluation.stop_room) == excess  # amax: shared equally between ties
-                share = attains * (final.sign() * (excess > 0)) / attains.sum(-1, keepdim=True).clamp_min(1)
-                grad = grad.addmm_(share, affine.stop_jacobian)
-            plan = self._step(plan, grad.view_as(plan), active, low, high, scale)
-            iterations += active.long()
-        return Adjustment(plan, evaluation, iterations)
+        def jacobians(evaluation: PlanEvaluation) -> tuple[Tensor, Tensor]:
+            return affine.position_jacobian, affine.stop_jacobian
 
+        return self._closed_form_steps(checker, jacobians, x0, plan, obstacle_centers, obstacle_generators,
+                                       obstacle_mask, start)
 
     def _feedback_steps(self, checker: PlanChecker, x0: Tensor, plan: Tensor, obstacle_centers: Tensor,
                         obstacle_generators: Tensor, obstacle_mask: Tensor, start: float) -> Adjustment:
@@ -157,6 +134,17 @@ class GradientAdjuster:
         (``Dπ`` from one batched backward pass per action dim, zero where the brake is clipped),
         which is the exact gradient of the tail as rolled out. Every iterate is checked exactly.
         """
+        def jacobians(evaluation: PlanEvaluation) -> tuple[Tensor, Tensor]:
+            jacobian = _feedback_jacobian(checker, evaluation.centers, plan.shape[1])  # [B, T, n, N]
+            return jacobian[:, :, checker.position_dims], jacobian[:, -1, checker.stop_dims]
+
+        return self._closed_form_steps(checker, jacobians, x0, plan, obstacle_centers, obstacle_generators,
+                                       obstacle_mask, start)
+
+    def _closed_form_steps(self, checker: PlanChecker, jacobians, x0: Tensor, plan: Tensor, obstacle_centers: Tensor,
+                           obstacle_generators: Tensor, obstacle_mask: Tensor, start: float) -> Adjustment:
+        """Projected steps with the gradient assembled from ``jacobians(evaluation)``: the
+        positions' ``[(B,) T, d, N]`` and the final stop dims' ``[(B,) s, N]`` Jacobians in the plan."""
         low, high = checker.action_low, checker.action_high
         scale = (high - low).clamp_min(1e-12)
         iterations = torch.zeros(plan.shape[0], dtype=torch.long, device=plan.device)
@@ -168,19 +156,19 @@ class GradientAdjuster:
             out_of_time = self.time_budget is not None and time.perf_counter() - start > self.time_budget
             if iteration == self.max_iterations or out_of_time or not bool(active.any()):
                 break
-            jacobian = _feedback_jacobian(checker, evaluation.centers, plan.shape[1])  # [B, T, n, N]
-            values = evaluation.values
+            position_jacobian, stop_jacobian = jacobians(evaluation)
+            values = evaluation.values  # masked: inf; non-finite: 0 (no gradient, as with autograd)
             picked = gauge.products.gather(-1, gauge.best.unsqueeze(-1)).squeeze(-1)  # [B, T, K]
             coef = torch.where((values < threshold) & (values > 0), picked.sign(), 0.0)
             weights = _picked_weights(checker, gauge.best)  # [B, T, K, d]
             per_step = (coef.unsqueeze(-2) @ weights).squeeze(-2)  # [B, T, d]
-            grad = torch.einsum("btd,btdn->bn", per_step, jacobian[:, :, checker.position_dims])
+            grad = (per_step.flatten(1).unsqueeze(1) @ position_jacobian.flatten(-3, -2)).squeeze(1)  # [B, N]
             if checker.stop_dims:
                 final = _stop_centres(checker, evaluation.centers)  # [B, s]
                 excess = evaluation.stop_excess.unsqueeze(-1)
-                attains = (final.abs() - evaluation.stop_room) == excess
+                attains = (final.abs() - evaluation.stop_room) == excess  # amax: shared equally between ties
                 share = attains * (final.sign() * (excess > 0)) / attains.sum(-1, keepdim=True).clamp_min(1)
-                grad = grad + (share.unsqueeze(1) @ jacobian[:, -1, checker.stop_dims]).squeeze(1)
+                grad = grad + (share.unsqueeze(1) @ stop_jacobian).squeeze(1)
             plan = self._step(plan, grad.view_as(plan), active, low, high, scale)
             iterations += active.long()
         return Adjustment(plan, evaluation, iterations)

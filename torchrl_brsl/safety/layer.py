@@ -457,15 +457,10 @@ class BRSLSafetyLayer(Transform):
         return state, action, plan, center, generators, mask
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
-        next_tensordict.set(self.safe_action_key, tensordict.get(self.action_key))
         next_tensordict.set(self.safe_plan_key, tensordict.get(self.safe_plan_key))
         next_tensordict.set(self.safe_steps_key, tensordict.get(self.safe_steps_key))
-        next_tensordict.set(self.diagnostics_key, tensordict.get(self.diagnostics_key).clone())
-        if self.penalty:
-            unsafe = tensordict.get((self.diagnostics_key, "intervened"))
-            reward = next_tensordict.get(self.reward_key)
-            next_tensordict.set(self.reward_key, reward - self.penalty * unsafe.to(reward.dtype).reshape(reward.shape))
-        return next_tensordict
+        return write_step_outputs(tensordict, next_tensordict, self.action_key, self.safe_action_key,
+                                  self.diagnostics_key, self.reward_key, self.penalty)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         raise RuntimeError(f"{type(self).__name__} acts inside an environment's step: append it to a TransformedEnv.")
@@ -668,3 +663,17 @@ def _check_structure(key: NestedKey, value, batch: tuple, trailing: tuple, why: 
         raise ValueError(f"`{_name(key)}` must be a floating-point tensor, got {value.dtype}")
     if dtype == "int" and (value.is_floating_point() or value.is_complex() or value.dtype is torch.bool):
         raise ValueError(f"`{_name(key)}` must be an integer tensor, got {value.dtype}")
+
+
+def write_step_outputs(tensordict: TensorDictBase, next_tensordict: TensorDictBase, action_key: NestedKey,
+                       safe_action_key: NestedKey, diagnostics_key: NestedKey, reward_key: NestedKey,
+                       penalty: float) -> TensorDictBase:
+    """An action filter's part of ``next``: the executed action, the step's diagnostics, and the
+    reward less ``penalty`` where the proposal was ``intervened`` on (layer and baselines alike)."""
+    next_tensordict.set(safe_action_key, tensordict.get(action_key))
+    next_tensordict.set(diagnostics_key, tensordict.get(diagnostics_key).clone())
+    if penalty:
+        unsafe = tensordict.get((diagnostics_key, "intervened"))
+        reward = next_tensordict.get(reward_key)
+        next_tensordict.set(reward_key, reward - penalty * unsafe.to(reward.dtype).reshape(reward.shape))
+    return next_tensordict
