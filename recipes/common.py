@@ -27,7 +27,7 @@ from torchrl.modules import MLP, TanhModule, ValueOperator  # noqa: E402
 
 import envs  # noqa: E402
 from torchrl_brsl.reach import DataDrivenReach, collect_offline_data, load_offline_data, save_offline_data  # noqa: E402
-from torchrl_brsl.safety import BRSLSafetyLayer, FacetQPAdjuster, Failsafe, GradientAdjuster  # noqa: E402
+from torchrl_brsl.safety import BRSLSafetyLayer, Failsafe  # noqa: E402
 from torchrl_brsl.sets import Zonotope  # noqa: E402
 
 CONFIG_DIR = Path(__file__).resolve().parent / "config"
@@ -206,13 +206,11 @@ def make_layer(cfg: DictConfig, models: SafetyModels) -> BRSLSafetyLayer:
     reach = models.reach
     n_plan, n_brk = horizon(cfg)
     braking = info.braking_policy if cfg.task.safety.braking == "policy" else None
-    adjusters = {"facet_qp": FacetQPAdjuster, "gradient": GradientAdjuster, "none": lambda: None}
-    if cfg.method.adjuster not in adjusters:
-        raise ValueError(f"unknown adjuster {cfg.method.adjuster!r}; choose one of {list(adjusters)}")
+    adjuster = None if cfg.method.adjuster == "none" else cfg.method.adjuster  # the layer's registry checks the name
     return BRSLSafetyLayer(
         reach, Failsafe(info.braking_action, n_brk, policy=braking), n_plan, stop_dims=info.velocity_dims,
         stop_slack=cfg.method.stop_slack, action_low=info.action_low,
-        action_high=info.action_high, adjuster=adjusters[cfg.method.adjuster](), penalty=cfg.method.penalty,
+        action_high=info.action_high, adjuster=adjuster, penalty=cfg.method.penalty,
         local_reach=models.local)
 
 

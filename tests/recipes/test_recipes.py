@@ -120,6 +120,12 @@ def test_unknown_planner_is_rejected(tmp_path):
         train(cfg, run_dir(tmp_path, "point_boxes", "brsl"))
 
 
+def test_unknown_adjuster_is_rejected_by_name(tmp_path):
+    cfg = config(tmp_path, "point_boxes", "brsl", 100, "method.adjuster=newton")
+    with pytest.raises(ValueError, match="adjuster.*newton"):
+        train(cfg, run_dir(tmp_path, "point_boxes", "brsl"))
+
+
 def test_learn_from_proposals_runs_and_bad_values_are_rejected(tmp_path):
     cfg = config(tmp_path, "point_boxes", "brsl", 200, "method.learn_from=proposed")
     assert train(cfg, run_dir(tmp_path, "point_boxes", "brsl"))["totals"]["frames"] == 200
