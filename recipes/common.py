@@ -295,6 +295,16 @@ def read_scalar(run_dir: str | Path, name: str) -> tuple[np.ndarray, np.ndarray]
     return (rows[:, 0], rows[:, 1]) if rows.size else (np.zeros(0), np.zeros(0))
 
 
+def seed_curves(run_dirs, name: str) -> tuple[np.ndarray, np.ndarray] | None:
+    """One scalar of several runs on a common step grid: ``(grid [S], values [runs, S])``, or
+    ``None`` when no run logged it (runs without it are left out)."""
+    curves = [c for c in (read_scalar(d, name) for d in run_dirs) if len(c[0])]
+    if not curves:
+        return None
+    grid = np.unique(np.concatenate([steps for steps, _ in curves]))
+    return grid, np.stack([np.interp(grid, steps, values) for steps, values in curves])
+
+
 def threads(n: int) -> None:
     """Small MLPs run several times faster on one thread than on two."""
     torch.set_num_threads(int(n))

@@ -167,14 +167,12 @@ def plot_rewards(task_dir: str | Path, path: str | Path | None = None) -> Path |
         return None
     fig, ax = plt.subplots(figsize=(5, 3.5))
     for method, dirs in sorted(runs.items()):
-        curves = [common.read_scalar(d, "train/episode_reward") for d in dirs]
-        curves = [c for c in curves if len(c[0])]
-        if not curves:
+        curves = common.seed_curves(dirs, "train/episode_reward")
+        if curves is None:
             continue
-        grid = np.unique(np.concatenate([c[0] for c in curves]))
-        values = np.stack([np.interp(grid, steps, vals) for steps, vals in curves])
-        ax.plot(grid, values.mean(0), label=f"{method} ({len(curves)} seed{'s' * (len(curves) > 1)})")
-        if len(curves) > 1:
+        grid, values = curves
+        ax.plot(grid, values.mean(0), label=f"{method} ({len(values)} seed{'s' * (len(values) > 1)})")
+        if len(values) > 1:
             ax.fill_between(grid, values.min(0), values.max(0), alpha=0.2)
     ax.set_xlabel("frames")
     ax.set_ylabel("episode reward")

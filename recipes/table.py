@@ -142,14 +142,12 @@ def plot_fig4(root: str | Path, results: dict, path: str | Path | None = None) -
     for ax, task in zip(axes[0], tasks):
         runs = common.runs_of(Path(root) / task)
         for method in [m for m in METHODS if m in runs] + sorted(m for m in runs if m not in METHODS):
-            curves = [common.read_scalar(d, "train/episode_reward") for d in runs[method]]
-            curves = [c for c in curves if len(c[0])]
-            if not curves:
+            curves = common.seed_curves(runs[method], "train/episode_reward")
+            if curves is None:
                 continue
-            grid = np.unique(np.concatenate([c[0] for c in curves]))
-            values = np.stack([np.interp(grid, steps, vals) for steps, vals in curves])
-            ax.plot(grid, values.mean(0), label=f"{LABELS.get(method, method)} ({len(curves)})")
-            if len(curves) > 1:
+            grid, values = curves
+            ax.plot(grid, values.mean(0), label=f"{LABELS.get(method, method)} ({len(values)})")
+            if len(values) > 1:
                 ax.fill_between(grid, values.mean(0) - values.std(0), values.mean(0) + values.std(0), alpha=0.2)
         ax.set_title(TASK_LABELS.get(task, task))
         ax.set_xlabel("frames")
