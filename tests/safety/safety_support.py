@@ -5,7 +5,7 @@ import torch
 
 import envs
 from torchrl_brsl.reach import DataDrivenReach
-from torchrl_brsl.safety import BRSLSafetyLayer, Failsafe
+from torchrl_brsl.safety import BRSLSafetyLayer, Failsafe, GradientAdjuster
 from torchrl_brsl.sets import Zonotope
 
 
@@ -48,3 +48,17 @@ def make_layer(task: str, **kwargs) -> BRSLSafetyLayer:
     options.update(kwargs)
     return BRSLSafetyLayer(reach, Failsafe(info.braking_action, info.n_brk), info.n_plan,
                            **options)
+
+
+def assert_closed_form_matches_autograd(checker, x0, plan, centers, generators, mask, iterations: int) -> None:
+    """The gradient adjuster's closed-form iteration takes the same steps as autograd (to 1e-9)."""
+    assert not checker.evaluate(x0, plan, centers, generators, mask).safe.all()
+    fast = GradientAdjuster(max_iterations=iterations, time_budget=None)
+    slow = GradientAdjuster(max_iterations=iterations, time_budget=None)
+    slow._analytic = False
+    a = fast(checker, x0, plan, centers, generators, mask)
+    b = slow(checker, x0, plan, centers, generators, mask)
+    assert torch.equal(a.iterations, b.iterations) and a.iterations.max() > 0
+    torch.testing.assert_close(a.plan, b.plan, rtol=0, atol=1e-9)
+    for x, y in zip(a.evaluation, b.evaluation):
+        torch.testing.assert_close(x, y, rtol=0, atol=1e-9)

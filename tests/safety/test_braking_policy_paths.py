@@ -5,8 +5,10 @@ import pytest
 import torch
 
 from torchrl_brsl.reach import DataDrivenReach, DoubleIntegrator
-from torchrl_brsl.safety import FacetQPAdjuster, Failsafe, GradientAdjuster, PlanChecker
+from torchrl_brsl.safety import FacetQPAdjuster, Failsafe, PlanChecker
 from torchrl_brsl.safety.adjust import _centre_jacobian, _feedback_jacobian
+
+from safety_support import assert_closed_form_matches_autograd
 
 N_PLAN, N_BRK = 5, 8
 D = torch.float64
@@ -52,16 +54,7 @@ def test_linearised_tail_matches_finite_differences(checker, plan_steps):
 @pytest.mark.parametrize("iterations", [1, 4, 15])
 def test_gradient_adjuster_with_a_braking_policy_matches_autograd(checker, iterations):
     x0, plan, centers, generators, mask = scene()
-    assert not checker.evaluate(x0, plan, centers, generators, mask).safe.all()
-    fast = GradientAdjuster(max_iterations=iterations, time_budget=None)
-    slow = GradientAdjuster(max_iterations=iterations, time_budget=None)
-    slow._analytic = False
-    a = fast(checker, x0, plan, centers, generators, mask)
-    b = slow(checker, x0, plan, centers, generators, mask)
-    assert torch.equal(a.iterations, b.iterations) and a.iterations.max() > 0
-    torch.testing.assert_close(a.plan, b.plan, rtol=0, atol=1e-9)
-    for x, y in zip(a.evaluation, b.evaluation):
-        torch.testing.assert_close(x, y, rtol=0, atol=1e-9)
+    assert_closed_form_matches_autograd(checker, x0, plan, centers, generators, mask, iterations)
 
 
 def test_facet_qp_with_a_braking_policy_accepts_only_verified_plans(checker):

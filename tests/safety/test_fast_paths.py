@@ -9,6 +9,8 @@ from torchrl_brsl.reach import DataDrivenReach, DoubleIntegrator
 from torchrl_brsl.safety import FacetQPAdjuster, Failsafe, GradientAdjuster, PlanChecker
 from torchrl_brsl.safety.adjust import _centre_jacobian, _project_polytope
 
+from safety_support import assert_closed_form_matches_autograd
+
 N_PLAN, N_BRK = 5, 8
 D = torch.float64
 
@@ -127,16 +129,7 @@ def test_analytic_gradient_adjuster_matches_autograd(reach, iterations):
     centers = torch.tensor([[[1.3, 0.0], [0.5, 0.9]]] * 3, dtype=D)
     generators = torch.tensor([[[[0.2, 0.0, 0.05], [0.0, 0.35, 0.05]]] * 2] * 3, dtype=D)
     mask = torch.tensor([[True, True], [True, False], [True, True]])
-    assert not checker.evaluate(x0, plan, centers, generators, mask).safe.all()
-    fast = GradientAdjuster(max_iterations=iterations, time_budget=None)
-    slow = GradientAdjuster(max_iterations=iterations, time_budget=None)
-    slow._analytic = False
-    a = fast(checker, x0, plan, centers, generators, mask)
-    b = slow(checker, x0, plan, centers, generators, mask)
-    assert torch.equal(a.iterations, b.iterations) and a.iterations.max() > 0
-    torch.testing.assert_close(a.plan, b.plan, rtol=0, atol=1e-9)
-    for x, y in zip(a.evaluation, b.evaluation):
-        torch.testing.assert_close(x, y, rtol=0, atol=1e-9)
+    assert_closed_form_matches_autograd(checker, x0, plan, centers, generators, mask, iterations)
 
 
 def test_facet_qp_accepts_only_verified_plans_on_the_fast_path(reach):
