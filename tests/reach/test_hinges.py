@@ -59,16 +59,20 @@ def test_relu_relaxation_contains_every_sampled_point(seed):
     assert torch.allclose(low, (center - radius).clamp_min(0)) and torch.allclose(high, (center + radius).clamp_min(0))
 
 
-def test_capped_servo_sets_are_sound_and_claimed():
+@pytest.mark.parametrize("hinges", [True, False])
+def test_capped_servo_sets_are_sound_and_claimed_only_with_hinges(hinges):
     """Without hinges no random plan of the capped servo stays inside the data's leaves with 500
     steps (measured: 0 of 20 claimed; 1 of 20 with 2,000); with them all are, and sound."""
     system, x, xp, u = servo_data(500)
-    reach = DataDrivenReach.fit(x, xp, u, system.noise, translation_invariant_dims=system.translation_invariant_dims)
+    reach = DataDrivenReach.fit(x, xp, u, system.noise, translation_invariant_dims=system.translation_invariant_dims,
+                                hinges=hinges)
     gen = torch.Generator().manual_seed(1)
     x0 = system.sample_states(20, gen) * 0.7
     x0[:, :2] = 0.0
     result = sample_reach(reach, lambda s, a: system.step(s, a, gen), x0, system.sample_actions(20, 10, generator=gen),
                           300)
-    assert result.covered.float().mean() >= 0.8
     assert result.violations == 0, f"{result.violations} of {result.checked} outside"
-    assert result.median_ratio < 30
+    if hinges:
+        assert result.covered.float().mean() >= 0.8 and result.median_ratio < 30
+    else:
+        assert result.covered.float().mean() <= 0.2

@@ -183,8 +183,8 @@ def fit_cells(inputs: Tensor, targets: Tensor, noise_radius: Tensor, n_actions: 
             on the edge of its speeds); a query there is farther from the data, which the
             per-query distance term of the error accounts for.
         lipschitz_margin: factor (>= 1) on the data's Lipschitz constants.
-        use_hinges: regress every leaf also on hinge features fitted to the output
-            (:func:`~torchrl_brsl.reach.hinges.fit_hinges`); ``False``: affine in ``z`` only.
+        use_hinges: offer each output its hinge features (:func:`~torchrl_brsl.reach.hinges.fit_hinges`,
+            kept where the probe error says they help); ``False``: leaves affine in ``z`` only.
 
     Returns:
         The stacked :class:`Cells`, root first for every output.

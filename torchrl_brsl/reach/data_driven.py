@@ -95,7 +95,8 @@ class DataDrivenReach(nn.Module):
     def fit(cls, x_minus, x_plus, u_minus, noise: Zonotope, translation_invariant_dims: Sequence[int] = (),
             max_generators: int | None = None, n_neighbors: int = 10, lipschitz_margin: float | None = None,
             domain: tuple | None = None, method: str = "local", leaf_size: int | None = None,
-            overlap: float = 0.15, extend: float = 0.25, dtype: torch.dtype = torch.float64) -> DataDrivenReach:
+            overlap: float = 0.15, extend: float = 0.25, hinges: bool = True,
+            dtype: torch.dtype = torch.float64) -> DataDrivenReach:
         """Fit the model and its error zonotope from offline transitions.
 
         Args:
@@ -119,6 +120,8 @@ class DataDrivenReach(nn.Module):
                 step by the set itself; ``"global"``: one affine fit for the whole data region
                 (plan-independent generators; much wider on nonlinear robots).
             leaf_size, overlap, extend: the cells of ``method="local"`` (see :func:`fit_cells`).
+            hinges: offer the local model hinge features for saturating inputs (``use_hinges`` of
+                :func:`fit_cells`); ``False`` for comparison.
             dtype: computation dtype (float64 by default).
         """
         if method not in METHODS:
@@ -189,7 +192,8 @@ class DataDrivenReach(nn.Module):
         )
         if method == "local":
             params.update(_local_params(fit_cells(scaled, target, w_g.abs().sum(-1), m, scale=scale, leaf_size=leaf_size,
-                                                  overlap=overlap, extend=extend, lipschitz_margin=lipschitz_margin),
+                                                  overlap=overlap, extend=extend, lipschitz_margin=lipschitz_margin,
+                                                  use_hinges=hinges),
                                         scale, free, select, w_c))
         return cls(params, fixed, delta, max_generators)
 
