@@ -7,7 +7,7 @@ plans. One-action proposals (``n_plan = 1``) then the task's braking steps (``--
 the uncapped servos), stop slack 0.15, the facet-QP adjuster, ``--steps`` offline transitions.
 
 Usage: ``python benchmarks/bench_closed_loop.py [--task point_boxes] [--steps 1000] [--episodes 40]
-[--servo capped|uncapped|both] [--models global,local]``
+[--servo capped|uncapped|both] [--models global,local,body]``
 """
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ import torch
 from torchrl.envs import SerialEnv, TransformedEnv
 
 import envs
-from torchrl_brsl.reach import DataDrivenReach, collect_offline_data
+from torchrl_brsl.reach import BodyFrame, DataDrivenReach, collect_offline_data
 from torchrl_brsl.safety import BRSLSafetyLayer, Failsafe
 from torchrl_brsl.sets import Zonotope
 
@@ -84,7 +84,8 @@ def main() -> None:
     parser.add_argument("--episode-steps", type=int, default=60)
     parser.add_argument("--n-brk", type=int, default=None, help="braking steps of the uncapped servos")
     parser.add_argument("--servo", choices=("capped", "uncapped", "both"), default="both")
-    parser.add_argument("--models", default="global,local", help="comma-separated: global, local")
+    parser.add_argument("--models", default="global,local,body",
+                        help="comma-separated: global, local, body (local in the body frame, robots with a heading)")
     args = parser.parse_args()
     torch.set_num_threads(1)
     task = args.task
@@ -100,8 +101,12 @@ def main() -> None:
         free = run(task, options, None, n_brk, args.episodes, args.episode_steps)
         print(f"{servo:<10}{'none':<8}{free['collisions']:>6}/{free['episodes']:<5}{free['speed']:>8.3f}")
         for method in args.models.split(","):
+            if method == "body" and not info.heading_dims:
+                continue
+            frame = BodyFrame(info.position_dims, info.heading_dims) if method == "body" else None
             reach = DataDrivenReach.from_data(data, noise, translation_invariant_dims=info.position_dims,
-                                              max_generators=30, method=method)
+                                              max_generators=30, method="global" if method == "global" else "local",
+                                              body_frame=frame)
             row = run(task, options, reach, n_brk, args.episodes, args.episode_steps)
             print(f"{servo:<10}{method:<8}{row['collisions']:>6}/{row['episodes']:<5}{row['speed']:>8.3f}"
                   f"{row['speed'] / free['speed']:>9.2f}{row['intervened']:>9.2f}{row['failsafe']:>9.2f}"

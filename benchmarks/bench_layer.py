@@ -6,7 +6,8 @@
 - safe proposals (no adjustment needed): a gentle constant plan in open space;
 - adjustment: the plan drives at full speed towards a wall, so once the wall is within the
   braking distance every step needs an adjustment; both adjusters are timed;
-each with the local reachability model (the default) and the global fit.
+each with the local reachability model (the default), the local model fitted in the robot's body
+frame (``body``) and the global fit.
 
 The layer's own time is its ``compute_time`` diagnostic (read, check, adjust, write).
 Usage: ``python benchmarks/bench_layer.py [--quick]``
@@ -21,11 +22,12 @@ import torch
 from torchrl.envs import TransformedEnv
 
 import envs
-from torchrl_brsl.reach import DataDrivenReach, collect_offline_data
+from torchrl_brsl.reach import BodyFrame, DataDrivenReach, collect_offline_data
 from torchrl_brsl.safety import BRSLSafetyLayer, FacetQPAdjuster, Failsafe, GradientAdjuster
 from torchrl_brsl.sets import Zonotope
 
 TASK, N_PLAN, N_OBSTACLES = "diffdrive_nav", 10, 10
+METHODS = ("local", "body", "global")
 
 
 def make_layer(reach, info, adjuster):
@@ -76,9 +78,11 @@ def main() -> None:
     data = collect_offline_data(envs.make(TASK, empty=True, seed=1), 500)
     steps = 30 if args.quick else 120
     rows = {}
-    for method in ("local", "global"):
+    for method in METHODS:
+        frame = BodyFrame(info.position_dims, info.heading_dims) if method == "body" else None
         reach = DataDrivenReach.from_data(data, noise, translation_invariant_dims=info.position_dims,
-                                          max_generators=30, method=method)
+                                          max_generators=30, method="global" if method == "global" else "local",
+                                          body_frame=frame)
         safe = episode_times(make_layer(reach, info, GradientAdjuster()), steps, False, 0)
         rows[f"{method}: layer, safe proposals (no adjustment)"] = stats(safe[5:])
         for name, adjuster in (("projected gradient", GradientAdjuster()), ("facet-locked QP", FacetQPAdjuster())):
@@ -110,7 +114,7 @@ def main() -> None:
     print(f"{'':<60}{'median ms':>12}{'p99 ms':>10}")
     for label, (median, p99) in rows.items():
         print(f"{label:<60}{median:>12.3f}{p99:>10.3f}")
-    for method in ("local", "global"):
+    for method in METHODS:
         best = min(v[0] for k, v in rows.items() if "adjusting" in k and k.startswith(method))
         print(f"target ({method}): median <= 1.5 ms with adjustment: {'met' if best <= 1.5 else 'MISSED'} "
               f"(best {best:.2f} ms)")

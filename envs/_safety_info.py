@@ -23,6 +23,9 @@ class SafetyInfo:
             also the translation-invariant ones (paper Assumption 1). Always the
             leading dims, of length ``obstacle_dim``.
         velocity_dims: indices of ``"state"`` that are ~0 once the robot is stopped.
+        heading_dims: the heading of a yaw-invariant planar robot inside ``"state"``: one
+            angle dim or ``(cos θ, sin θ)``; empty for robots without one. Reachability can
+            then be fitted in the body frame (``BodyFrame(position_dims, heading_dims)``).
         obstacle_dim: ``d``, dimension of the obstacle zonotopes (2 or 3).
         action_low: lower action bounds, shape ``[m]``.
         action_high: upper action bounds, shape ``[m]``.
@@ -65,6 +68,7 @@ class SafetyInfo:
     braking_policy: Callable[[Tensor], Tensor]
     stop_tolerance: float
     dt: float
+    heading_dims: tuple[int, ...] = ()
 
     def is_stopped(self, state: Tensor) -> Tensor:
         """Whether each state counts as stopped.

@@ -53,6 +53,7 @@ class SafetyTask(base.Task):
     noise_generators: ClassVar[np.ndarray]
     position_dims: ClassVar[tuple[int, ...]]
     velocity_dims: ClassVar[tuple[int, ...]]
+    heading_dims: ClassVar[tuple[int, ...]] = ()
     obstacle_kinds: ClassVar[tuple[str, ...]]
 
     def __init__(
@@ -230,6 +231,7 @@ class SafetyTask(base.Task):
             braking_policy=braking_policy,
             stop_tolerance=float(stop_tolerance),
             dt=cls.dt,
+            heading_dims=tuple(cls.heading_dims),
         )
 
 

@@ -78,6 +78,7 @@ class DiffDriveNav(GoalTask):
     noise_center = np.zeros(6)
     noise_generators = np.array([[0, 0], [0, 0], [0, 0], [0, 0], [0.005, 0], [0, 0.01]], dtype=np.float64)
     position_dims = (0, 1)
+    heading_dims = (2, 3)
     velocity_dims = (4, 5)
     obstacle_kinds = ("box",) * 4 + ("cylinder",) * _N_CYLINDERS + ("box",) * _N_BOXES
     progress_scale = 10.0

@@ -26,7 +26,8 @@ from torchrl.envs import Compose, RewardSum, TransformedEnv  # noqa: E402
 from torchrl.modules import MLP, TanhModule, ValueOperator  # noqa: E402
 
 import envs  # noqa: E402
-from torchrl_brsl.reach import DataDrivenReach, collect_offline_data, load_offline_data, save_offline_data  # noqa: E402
+from torchrl_brsl.reach import (BodyFrame, DataDrivenReach, collect_offline_data, load_offline_data,  # noqa: E402
+                                save_offline_data)
 from torchrl_brsl.safety import BRSLSafetyLayer, Failsafe  # noqa: E402
 from torchrl_brsl.sets import Zonotope  # noqa: E402
 
@@ -166,8 +167,11 @@ class SafetyModels(NamedTuple):
         """Offline data (cached) and the fitted models."""
         info = envs.safety_info(cfg.task.name)
         noise = Zonotope(info.noise_center.double(), info.noise_generators.double())
+        method = cfg.method.get("reach", "local")
         options = {"translation_invariant_dims": info.position_dims, "max_generators": cfg.method.max_generators,
-                   "method": cfg.method.get("reach", "local")}
+                   "method": method}
+        if method == "local" and info.heading_dims and cfg.method.get("body_frame", True):
+            options["body_frame"] = BodyFrame(info.position_dims, info.heading_dims)
         reach = DataDrivenReach.from_data(offline_data(cfg.task, cache_dir, cfg.seed), noise, **options)
         local = None
         if cfg.task.get("local") is not None:

@@ -4,32 +4,12 @@ import math
 import pytest
 import torch
 
-from torchrl_brsl.reach import (DataDrivenReach, DoubleIntegrator, KinematicBicycle, SaturatedThrustPoint, leaf_distance,
-                                sample_reach)
+from torchrl_brsl.reach import DataDrivenReach, DoubleIntegrator, KinematicBicycle, SaturatedThrustPoint, leaf_distance
 from torchrl_brsl.sets import Zonotope
 
+from reach_support import fit, random_plans, sampled
+
 SYSTEMS = {"bicycle": KinematicBicycle, "saturated_point": SaturatedThrustPoint, "double_integrator": DoubleIntegrator}
-
-
-def fit(system, num, seed=0, **kwargs):
-    gen = torch.Generator().manual_seed(seed)
-    x, xp, u = system.offline_data(num, gen)
-    return DataDrivenReach.fit(x, xp, u, system.noise, translation_invariant_dims=system.translation_invariant_dims,
-                               **kwargs)
-
-
-def random_plans(system, n_plans=20, horizon=10, seed=1):
-    """Starts inside the data region (positions at 0), uniformly random plans."""
-    gen = torch.Generator().manual_seed(seed)
-    center, half = (system.state_low + system.state_high) / 2, (system.state_high - system.state_low) / 2
-    x0 = center + 0.7 * half * (torch.rand(n_plans, center.shape[0], generator=gen, dtype=torch.float64) * 2 - 1)
-    x0[:, list(system.translation_invariant_dims)] = 0.0
-    return x0, system.sample_actions(n_plans, horizon, generator=gen), gen
-
-
-def sampled(system, reach, seed=1, samples=300):
-    x0, plans, gen = random_plans(system, seed=seed)
-    return sample_reach(reach, lambda x, u: system.step(x, u, gen), x0, plans, samples)
 
 
 @pytest.mark.parametrize("num", [500, 2000])

@@ -1,4 +1,5 @@
 """Data-driven reachability analysis of black-box systems."""
+from torchrl_brsl.reach.body_frame import BodyFrame
 from torchrl_brsl.reach.cells import (Cells, fit_cells, input_relevance, leaf_bounds, leaf_distance, split_directions,
                                       tree_nodes)
 from torchrl_brsl.reach.data_driven import METHODS, DataDrivenReach, stack_steps
@@ -9,8 +10,8 @@ from torchrl_brsl.reach.hinges import fit_hinges, hinge_features, relu_relaxatio
 from torchrl_brsl.reach.lipschitz import covering_radius, residual_lipschitz
 from torchrl_brsl.reach.offline import collect_offline_data, load_offline_data, save_offline_data
 
-__all__ = ["METHODS", "BlackBoxSystem", "CappedVelocityServo", "Cells", "DataDrivenReach", "DoubleIntegrator",
-           "KinematicBicycle", "SampledReach", "SaturatedThrustPoint", "Unicycle", "collect_offline_data",
+__all__ = ["METHODS", "BlackBoxSystem", "BodyFrame", "CappedVelocityServo", "Cells", "DataDrivenReach",
+           "DoubleIntegrator", "KinematicBicycle", "SampledReach", "SaturatedThrustPoint", "Unicycle", "collect_offline_data",
            "covering_radius", "fit_cells", "fit_hinges", "hinge_features", "input_relevance", "leaf_bounds",
            "leaf_distance", "load_offline_data", "points_outside", "relu_relaxation", "residual_lipschitz",
            "sample_reach", "save_offline_data", "split_directions", "stack_steps", "tree_nodes"]

@@ -8,6 +8,7 @@ import torch
 from tensordict import TensorDict
 from torch import Tensor, nn
 
+from torchrl_brsl.reach.body_frame import BodyFrame
 from torchrl_brsl.reach.cells import Cells, fit_cells, leaf_bounds, leaf_distance
 from torchrl_brsl.reach.hinges import relu_relaxation
 from torchrl_brsl.reach.lipschitz import covering_radius, residual_lipschitz
@@ -81,11 +82,12 @@ class DataDrivenReach(nn.Module):
     """
 
     def __init__(self, params: TensorDict, translation_invariant_dims: Sequence[int], covering_radius: float,
-                 max_generators: int | None = None):
+                 max_generators: int | None = None, body_frame: BodyFrame | None = None):
         super().__init__()
         for key, value in params.items():
             self.register_buffer(key, value)
         self.translation_invariant_dims = tuple(int(d) for d in translation_invariant_dims)
+        self.body_frame = body_frame
         self.covering_radius = float(covering_radius)
         self.max_generators = max_generators
         self._cache: dict = {}
@@ -95,7 +97,7 @@ class DataDrivenReach(nn.Module):
     def fit(cls, x_minus, x_plus, u_minus, noise: Zonotope, translation_invariant_dims: Sequence[int] = (),
             max_generators: int | None = None, n_neighbors: int = 10, lipschitz_margin: float | None = None,
             domain: tuple | None = None, method: str = "local", leaf_size: int | None = None,
-            overlap: float = 0.15, extend: float = 0.25, hinges: bool = True,
+            overlap: float = 0.15, extend: float = 0.25, hinges: bool = True, body_frame: BodyFrame | None = None,
             dtype: torch.dtype = torch.float64) -> DataDrivenReach:
         """Fit the model and its error zonotope from offline transitions.
 
@@ -122,10 +124,16 @@ class DataDrivenReach(nn.Module):
             leaf_size, overlap, extend: the cells of ``method="local"`` (see :func:`fit_cells`).
             hinges: offer the local model hinge features for saturating inputs (``use_hinges`` of
                 :func:`fit_cells`); ``False`` for comparison.
+            body_frame: for a yaw-invariant planar robot, its position and heading dims
+                (:class:`~torchrl_brsl.reach.body_frame.BodyFrame`): the local model then fits the
+                position step (and a heading vector) in the body frame, without the heading among
+                its inputs, and rotates it by the heading set at every step. ``method="local"`` only.
             dtype: computation dtype (float64 by default).
         """
         if method not in METHODS:
             raise ValueError(f"`method` must be one of {METHODS}, got {method!r}")
+        if body_frame is not None and method != "local":
+            raise ValueError(f"`body_frame` needs method='local' (the global model is one affine map), got {method!r}")
         x_minus = _rows("x_minus", x_minus, dtype)
         x_plus = _rows("x_plus", x_plus, dtype)
         u_minus = _rows("u_minus", u_minus, dtype)
@@ -143,7 +151,11 @@ class DataDrivenReach(nn.Module):
         fixed = sorted({int(d) % n for d in translation_invariant_dims})
         if len(fixed) != len(tuple(translation_invariant_dims)) or any(not -n <= d < n for d in translation_invariant_dims):
             raise ValueError(f"`translation_invariant_dims`={tuple(translation_invariant_dims)} must be distinct state indices < {n}")
-        free = [d for d in range(n) if d not in fixed]
+        if body_frame is not None:
+            body_frame.check(n, tuple(fixed))
+        heading = () if body_frame is None else body_frame.heading_dims
+        identity = fixed + ([body_frame.heading] if body_frame is not None and body_frame.angle else [])
+        free = [d for d in range(n) if d not in fixed and d not in heading]
         domain_low, domain_high = _domain(domain, n + m, dtype)
         if domain is not None:
             points = torch.cat((x_minus, u_minus), dim=1)
@@ -158,7 +170,7 @@ class DataDrivenReach(nn.Module):
         w_c = noise.center.to(dtype)
         w_g = noise.generators.to(dtype)
         select = torch.zeros(n, n, dtype=dtype)
-        select[fixed, fixed] = 1.0
+        select[identity, identity] = 1.0
         inputs = torch.cat((x_minus[:, free], u_minus), dim=1)  # [N, d]
         regressors = torch.cat((torch.ones(n_samples, 1, dtype=dtype), inputs), dim=1)
         target = x_plus - w_c - x_minus @ select.T
@@ -191,11 +203,17 @@ class DataDrivenReach(nn.Module):
             u_minus=u_minus,
         )
         if method == "local":
-            params.update(_local_params(fit_cells(scaled, target, w_g.abs().sum(-1), m, scale=scale, leaf_size=leaf_size,
+            noise_radius, local_select = w_g.abs().sum(-1), select
+            if body_frame is not None:
+                target = body_frame.body_targets(x_minus, x_plus, w_c, target)
+                noise_radius = body_frame.body_noise_radius(x_minus, w_g, noise_radius)
+                local_select = select.clone()
+                local_select[[d for pair in body_frame.rotated_pairs for d in pair]] = 0.0  # added after the rotation
+            params.update(_local_params(fit_cells(scaled, target, noise_radius, m, scale=scale, leaf_size=leaf_size,
                                                   overlap=overlap, extend=extend, lipschitz_margin=lipschitz_margin,
                                                   use_hinges=hinges),
-                                        scale, free, select, w_c))
-        return cls(params, fixed, delta, max_generators)
+                                        scale, free, local_select, w_c))
+        return cls(params, fixed, delta, max_generators, body_frame)
 
     @classmethod
     def from_data(cls, data, noise: Zonotope, **kwargs) -> DataDrivenReach:
@@ -233,8 +251,10 @@ class DataDrivenReach(nn.Module):
 
     @property
     def free_dims(self) -> list[int]:
-        """State dims that enter the regressors (all but the translation-invariant ones)."""
-        return [d for d in range(self.state_dim) if d not in self.translation_invariant_dims]
+        """State dims that enter the regressors (all but the translation-invariant ones and a body
+        frame's heading)."""
+        heading = () if self.body_frame is None else self.body_frame.heading_dims
+        return [d for d in range(self.state_dim) if d not in self.translation_invariant_dims and d not in heading]
 
     @property
     def noise(self) -> Zonotope:
@@ -385,18 +405,51 @@ class DataDrivenReach(nn.Module):
         B = B + along[..., n_free:]
         offset = offset + (theta * (offset_h - slope * cells.hinge_knots)).sum(-1, keepdim=True)
         errors = errors + (theta.abs() * offset_h).sum(-1)
-        center = (A @ center.unsqueeze(-1) + B @ action.unsqueeze(-1) + offset).squeeze(-1)
-        error = torch.diag_embed(errors)
+        new_center = (A @ center.unsqueeze(-1) + B @ action.unsqueeze(-1) + offset).squeeze(-1)
+        carried, error = A @ generators, torch.diag_embed(errors)
+        boxes = ()
+        if self.body_frame is not None:
+            new_center, carried, error, box = self._rotate_body_outputs(center, generators, new_center, carried, error)
+            boxes = (box,)
+        center = new_center
         if self._diagonal_noise is not None:
             error = error + torch.diag_embed(self._diagonal_noise).expand_as(error)
-            new = (error,)
+            new = (error, *boxes)
         else:
-            new = (error, self.noise_generators.expand(*center.shape, -1))
-        generators = torch.cat((A @ generators, *new), dim=-1)
+            new = (error, *boxes, self.noise_generators.expand(*center.shape, -1))
+        generators = torch.cat((carried, *new), dim=-1)
         if self.max_generators is not None and generators.shape[-1] > self.max_generators:
             with skip_value_checks():  # finite by construction
                 generators = reduce_girard(generators, self.max_generators)
         return center, generators, covered
+
+    def _rotate_body_outputs(self, center: Tensor, generators: Tensor, new_center: Tensor, carried: Tensor,
+                             error: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Turn the body-frame outputs of a step into world-frame ones (:mod:`~torchrl_brsl.reach.body_frame`).
+
+        ``new_center`` ``[..., n]``, ``carried`` ``[..., n, p]`` (the old generators mapped) and
+        ``error`` ``[..., n, n]`` (the leaves' diagonal intervals) hold the body-frame model on
+        the rotated pairs; they come back in the world frame (a position adds its old value),
+        with ``box`` ``[..., n, r]`` the enclosure's remainder on the ``r`` rotated dims.
+        """
+        frame, w_c = self.body_frame, self.noise_center
+        heading = frame.heading_form(center, generators)
+        new_center, carried, error = new_center.clone(), carried.clone(), error.clone()
+        boxes = []
+        for pair in frame.rotated_pairs:
+            idx = list(pair)
+            rotated, gens, rotated_error, box = frame.rotate(
+                heading, new_center[..., idx] - w_c[idx], carried[..., idx, :], error[..., idx, idx])
+            if pair == frame.position:  # a step of the position, from where it is
+                rotated, gens = rotated + center[..., idx], gens + generators[..., idx, :]
+            new_center[..., idx] = rotated + w_c[idx]
+            carried[..., idx, :] = gens
+            error[..., idx[0]:idx[0] + 1, idx] = rotated_error[..., :1, :]
+            error[..., idx[1]:idx[1] + 1, idx] = rotated_error[..., 1:, :]
+            column = box.new_zeros(*box.shape[:-1], self.state_dim, 2)
+            column[..., idx[0], 0], column[..., idx[1], 1] = box[..., 0], box[..., 1]
+            boxes.append(column)
+        return new_center, carried, error, torch.cat(boxes, dim=-1)
 
     @property
     def _leaf_rows(self) -> Tensor:
@@ -543,8 +596,10 @@ class DataDrivenReach(nn.Module):
     def save(self, path: str | Path) -> None:
         """Write the fitted model (parameters, data and settings) to ``path``."""
         params = {name: buf for name, buf in self.named_buffers()}
+        frame = None if self.body_frame is None else (self.body_frame.position, self.body_frame.heading)
         torch.save({"params": params, "translation_invariant_dims": self.translation_invariant_dims,
-                    "covering_radius": self.covering_radius, "max_generators": self.max_generators}, path)
+                    "covering_radius": self.covering_radius, "max_generators": self.max_generators,
+                    "body_frame": frame}, path)
 
     @classmethod
     def load(cls, path: str | Path, map_location=None) -> DataDrivenReach:
@@ -554,7 +609,9 @@ class DataDrivenReach(nn.Module):
         if "domain_low" not in params.keys():  # written before domains existed: unrestricted
             size = params["state_matrix"].shape[0] + params["input_matrix"].shape[1]
             params["domain_low"], params["domain_high"] = _domain(None, size, params["state_matrix"].dtype)
-        return cls(params, state["translation_invariant_dims"], state["covering_radius"], state["max_generators"])
+        frame = state.get("body_frame")
+        return cls(params, state["translation_invariant_dims"], state["covering_radius"], state["max_generators"],
+                   None if frame is None else BodyFrame(*frame))
 
     def _apply(self, fn, recurse=True):
         self._cache.clear()

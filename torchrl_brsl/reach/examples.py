@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from torchrl_brsl.reach.body_frame import BodyFrame
 from torchrl_brsl.sets import Zonotope
 
 
@@ -25,6 +26,7 @@ class BlackBoxSystem:
         action_low, action_high: ``[m]`` action bounds.
         noise_half_width: ``[n]`` half-widths of the (box) noise zonotope.
         translation_invariant_dims: position dims.
+        body_frame: the position and heading dims of a yaw-invariant robot (``None``: not one).
     """
 
     dt: float
@@ -34,6 +36,7 @@ class BlackBoxSystem:
     action_high: Tensor
     noise_half_width: Tensor
     translation_invariant_dims: tuple[int, ...]
+    body_frame: BodyFrame | None = None
 
     @property
     def noise(self) -> Zonotope:
@@ -107,7 +110,7 @@ class Unicycle(BlackBoxSystem):
                          state_high=torch.tensor([2.0, 2.0, 1.0, max_speed], dtype=d),
                          action_low=-torch.ones(2, dtype=d), action_high=torch.ones(2, dtype=d),
                          noise_half_width=torch.tensor([0.002, 0.002, 0.005, 0.01], dtype=d),
-                         translation_invariant_dims=(0, 1))
+                         translation_invariant_dims=(0, 1), body_frame=BodyFrame((0, 1), 2))
         self.max_speed = max_speed
 
     def dynamics(self, x: Tensor, u: Tensor) -> Tensor:
@@ -137,7 +140,7 @@ class KinematicBicycle(BlackBoxSystem):
                          state_high=torch.tensor([2.0, 2.0, math.pi, max_speed], dtype=d),
                          action_low=torch.tensor([-1.0, -0.5], dtype=d), action_high=torch.tensor([1.0, 0.5], dtype=d),
                          noise_half_width=torch.tensor([0.002, 0.002, 0.004, 0.01], dtype=d),
-                         translation_invariant_dims=(0, 1))
+                         translation_invariant_dims=(0, 1), body_frame=BodyFrame((0, 1), 2))
         self.drag, self.max_speed, self.wheelbase = drag, max_speed, wheelbase
 
     def dynamics(self, x: Tensor, u: Tensor) -> Tensor:
