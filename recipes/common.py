@@ -168,6 +168,8 @@ class SafetyModels(NamedTuple):
         info = envs.safety_info(cfg.task.name)
         noise = Zonotope(info.noise_center.double(), info.noise_generators.double())
         method = cfg.method.get("reach", "local")
+        if method == "auto":  # the task's choice
+            method = cfg.task.safety.get("reach", "global")
         options = {"translation_invariant_dims": info.position_dims, "max_generators": cfg.method.max_generators,
                    "method": method}
         if method == "local" and info.heading_dims and cfg.method.get("body_frame", True):

@@ -10,6 +10,7 @@ from recipes import common
 from recipes.compare import compare
 from recipes.evaluate import evaluate_run, main as evaluate_main
 from recipes.train import train
+from torchrl_brsl.reach import BodyFrame
 
 TINY = ["frames_per_batch=100", "init_random_frames=200", "batch_size=64", "hidden=[32,32]",
         "checkpoint.every_frames=200", "progress=false", "task.eval_layouts=2"]
@@ -155,8 +156,8 @@ def test_exploration_is_damped_every_frame(tmp_path, schedule):
 
 
 def test_without_a_planner_the_layer_checks_one_action_and_the_braking_tail():
-    assert common.horizon(common.compose_config(["task=diffdrive_nav"])) == (1, 3)
-    assert common.horizon(common.compose_config(["task=diffdrive_nav", "method.planner=ensemble"])) == (8, 3)
+    assert common.horizon(common.compose_config(["task=diffdrive_nav"])) == (1, 6)
+    assert common.horizon(common.compose_config(["task=diffdrive_nav", "method.planner=ensemble"])) == (8, 6)
     assert common.horizon(common.compose_config(["task=point_circle", "method.planner=ensemble"])) == (5, 12)
 
 
@@ -182,10 +183,12 @@ def test_demo_trains_both_methods_and_prints_the_table(tmp_path, capsys):
     assert (tmp_path / "point_boxes" / "reward.png").exists()
 
 
-def test_diffdrive_brsl_run_saves_and_reloads_its_local_model(tmp_path):
+def test_diffdrive_brsl_run_saves_and_reloads_its_models(tmp_path):
+    """The task's choice (``method.reach=auto``): the local model in the body frame, and the low-speed model."""
     train(config(tmp_path, "diffdrive_nav", "brsl", 100, "init_random_frames=100", "task.episode_steps=30"),
           run_dir(tmp_path, "diffdrive_nav", "brsl"))
     assert (run_dir(tmp_path, "diffdrive_nav", "brsl") / "local_reach.pt").exists()
     _, _, models = common.load_run(run_dir(tmp_path, "diffdrive_nav", "brsl"))
     assert models.local is not None and models.local.bounded_domain and not models.reach.bounded_domain
+    assert models.reach.method == "local" and models.reach.body_frame == BodyFrame((0, 1), (2, 3))
     assert evaluate_run(run_dir(tmp_path, "diffdrive_nav", "brsl"), episodes=1)["collision_rate"] == 0.0
