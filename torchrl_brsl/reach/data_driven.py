@@ -406,11 +406,12 @@ class DataDrivenReach(nn.Module):
         offset = offset + (theta * (offset_h - slope * cells.hinge_knots)).sum(-1, keepdim=True)
         errors = errors + (theta.abs() * offset_h).sum(-1)
         new_center = (A @ center.unsqueeze(-1) + B @ action.unsqueeze(-1) + offset).squeeze(-1)
-        carried, error = A @ generators, torch.diag_embed(errors)
-        boxes = ()
+        carried, boxes = A @ generators, ()
         if self.body_frame is not None:
-            new_center, carried, error, box = self._rotate_body_outputs(center, generators, new_center, carried, error)
+            new_center, carried, error, box = self._rotate_body_outputs(center, generators, new_center, carried, errors)
             boxes = (box,)
+        else:
+            error = torch.diag_embed(errors)
         center = new_center
         if self._diagonal_noise is not None:
             error = error + torch.diag_embed(self._diagonal_noise).expand_as(error)
@@ -424,32 +425,44 @@ class DataDrivenReach(nn.Module):
         return center, generators, covered
 
     def _rotate_body_outputs(self, center: Tensor, generators: Tensor, new_center: Tensor, carried: Tensor,
-                             error: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+                             errors: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """Turn the body-frame outputs of a step into world-frame ones (:mod:`~torchrl_brsl.reach.body_frame`).
 
         ``new_center`` ``[..., n]``, ``carried`` ``[..., n, p]`` (the old generators mapped) and
-        ``error`` ``[..., n, n]`` (the leaves' diagonal intervals) hold the body-frame model on
-        the rotated pairs; they come back in the world frame (a position adds its old value),
-        with ``box`` ``[..., n, r]`` the enclosure's remainder on the ``r`` rotated dims.
+        ``errors`` ``[..., n]`` (the leaves' interval radii) hold the body-frame model on the
+        ``P`` rotated pairs; the centre and generators come back in the world frame (a
+        position adds its old value), with the error generators ``[..., n, n]`` (diagonal but
+        for the rotated pairs' 2 x 2 blocks) and ``box`` ``[..., n, 2P]``, the enclosure's
+        remainder on the rotated dims. All pairs turn in one batched rotation.
         """
-        frame, w_c = self.body_frame, self.noise_center
-        heading = frame.heading_form(center, generators)
-        new_center, carried, error = new_center.clone(), carried.clone(), error.clone()
-        boxes = []
-        for pair in frame.rotated_pairs:
-            idx = list(pair)
-            rotated, gens, rotated_error, box = frame.rotate(
-                heading, new_center[..., idx] - w_c[idx], carried[..., idx, :], error[..., idx, idx])
-            if pair == frame.position:  # a step of the position, from where it is
-                rotated, gens = rotated + center[..., idx], gens + generators[..., idx, :]
-            new_center[..., idx] = rotated + w_c[idx]
-            carried[..., idx, :] = gens
-            error[..., idx[0]:idx[0] + 1, idx] = rotated_error[..., :1, :]
-            error[..., idx[1]:idx[1] + 1, idx] = rotated_error[..., 1:, :]
-            column = box.new_zeros(*box.shape[:-1], self.state_dim, 2)
-            column[..., idx[0], 0], column[..., idx[1], 1] = box[..., 0], box[..., 1]
-            boxes.append(column)
-        return new_center, carried, error, torch.cat(boxes, dim=-1)
+        frame, w_c, n = self.body_frame, self.noise_center, self.state_dim
+        index, moves = self._rotated_dims  # [2P] the rotated dims, pair by pair; 1.0 on the position's
+        pairs = len(index) // 2
+        q0, q_gens, q_error = frame.heading_form(center, generators)
+        heading = (q0.unsqueeze(-2), q_gens.unsqueeze(-3), q_error.unsqueeze(-2))  # one heading for every pair
+        rotated, gens, blocks, box = frame.rotate(
+            heading, (new_center[..., index] - w_c[index]).unflatten(-1, (pairs, 2)),
+            carried[..., index, :].unflatten(-2, (pairs, 2)), errors[..., index].unflatten(-1, (pairs, 2)))
+        new_center = new_center.index_copy(-1, index, rotated.flatten(-2) + w_c[index] + moves * center[..., index])
+        carried = carried.index_copy(-2, index, gens.flatten(-3, -2) + moves.unsqueeze(-1) * generators[..., index, :])
+        eye = torch.eye(pairs, dtype=blocks.dtype, device=blocks.device)
+        blocks = torch.einsum("...kij,kl->...kilj", blocks, eye).reshape(*blocks.shape[:-3], 2 * pairs, 2 * pairs)
+        rows = blocks.new_zeros(*blocks.shape[:-1], n).index_copy(-1, index, blocks)
+        error = torch.diag_embed(errors.index_fill(-1, index, 0.0)).index_copy(-2, index, rows)
+        box_columns = box.new_zeros(*box.shape[:-2], n, 2 * pairs).index_copy(-2, index, torch.diag_embed(box.flatten(-2)))
+        return new_center, carried, error, box_columns
+
+    @property
+    def _rotated_dims(self) -> tuple[Tensor, Tensor]:
+        """The body frame's rotated dims, pair by pair ``[2P]``, and 1.0 where they are the position's."""
+        key = ("rotated dims",)
+        if key not in self._cache:
+            pairs = self.body_frame.rotated_pairs
+            index = torch.tensor([d for pair in pairs for d in pair], device=self.noise_center.device)
+            moves = torch.tensor([float(pair == self.body_frame.position) for pair in pairs for _ in pair],
+                                 dtype=self.noise_center.dtype, device=self.noise_center.device)
+            self._cache[key] = (index, moves)
+        return self._cache[key]
 
     @property
     def _leaf_rows(self) -> Tensor:
