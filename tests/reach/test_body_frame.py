@@ -3,7 +3,7 @@ import pytest
 import torch
 
 from torchrl_brsl.reach import BodyFrame, DataDrivenReach, KinematicBicycle, Unicycle, points_outside, sample_reach
-from torchrl_brsl.reach import cells
+from torchrl_brsl.reach import cells, hinges
 from torchrl_brsl.sets import Zonotope
 
 from reach_support import fit, sampled
@@ -52,16 +52,19 @@ def test_the_rotation_enclosure_needs_its_second_order_term():
     assert outside > 0
 
 
-# system, offline steps, share of the 20 random plans the model must claim. Not the unicycle with
-# 500 steps: it claims 1 of 20 (its speed clip at 0 and 1 m/s, which random plans reach, has no
-# hinge along it, so its sets leave the data's region).
-CLAIMED = [("bicycle", 500, 0.5), ("bicycle", 2000, 0.5), ("unicycle", 2000, 0.4)]  # unicycle: 9 of 20 measured
+# system, offline steps, data seed, share of the 20 random plans the model must claim. Not the
+# unicycle with 500 steps: it claims 1 of 20 (its speed clip at 0 and 1 m/s, which random plans
+# reach, has no hinge along it, so its sets leave the data's region). The bicycle's data seed 1
+# caught a step that summed the world noise's generators with the rotated error's pairwise
+# (5 states outside) instead of adding both sets.
+CLAIMED = [("bicycle", 500, 0, 0.5), ("bicycle", 500, 1, 0.5), ("bicycle", 2000, 0, 0.5),
+           ("unicycle", 2000, 0, 0.4)]  # unicycle: 9 of 20 measured
 
 
-@pytest.mark.parametrize("name, num, min_claimed", CLAIMED)
-def test_sampled_true_states_lie_in_the_body_frame_sets(name, num, min_claimed):
+@pytest.mark.parametrize("name, num, seed, min_claimed", CLAIMED)
+def test_sampled_true_states_lie_in_the_body_frame_sets(name, num, seed, min_claimed):
     system = SYSTEMS[name]()
-    result = sampled(system, fit(system, num, body_frame=system.body_frame))
+    result = sampled(system, fit(system, num, seed=seed, body_frame=system.body_frame))
     assert result.covered.float().mean() >= min_claimed, f"{int(result.covered.sum())} of 20 plans claimed"
     assert result.violations == 0, f"{result.violations} of {result.checked} sampled states outside their sets"
 
@@ -75,13 +78,13 @@ def test_a_weakened_body_frame_bound_is_caught_by_the_sampling():
 
 
 def test_the_body_frame_is_tighter_on_the_bicycle():
-    """Width over sampled spread, median: measured 6.5 (body) against 13 (world frame) with
-    500 steps, 5.2 against 8.6 with 2,000."""
+    """Width over sampled spread, median: measured 4.4 (body frame) against 11 (world frame) with
+    500 steps, 4.2 against 7.0 with 2,000 (5.6 with the data of seed 1 and 500 steps)."""
     system = KinematicBicycle()
-    for num, limit in ((500, 8.0), (2000, 6.5)):
+    for num, limit in ((500, 5.5), (2000, 5.0)):
         body = sampled(system, fit(system, num, body_frame=system.body_frame)).median_ratio
         world = sampled(system, fit(system, num)).median_ratio
-        assert body < limit and body < 0.8 * world, (num, body, world)
+        assert body < limit and body < 0.7 * world, (num, body, world)
 
 
 def test_the_body_frame_survives_save_and_load(tmp_path):
@@ -125,6 +128,8 @@ def test_a_malformed_body_frame_is_rejected(position, heading):
 def _bicycle_states_outside(monkeypatch, floor: bool) -> int:
     """Sampled states outside on the bicycle case where the leaves' curvature is as small as the
     noise (500 steps and plans drawn from one generator, as in bench_reach_tightness.py)."""
+    # hinges only: a product feature would take the curvature out
+    monkeypatch.setattr(cells, "fit_features", lambda *args, n_actions: hinges.fit_features(*args))
     if not floor:
         monkeypatch.setattr(cells, "curvature_floor", lambda low, high, slopes, weights: slopes.new_zeros(len(low)))
     system = KinematicBicycle()

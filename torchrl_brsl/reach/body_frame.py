@@ -26,7 +26,7 @@ with the Taylor remainder ``|τ|² / 2`` (``|τ| <=`` the heading's interval rad
 transformations at fit time are exact identities on the data: the body target is
 ``M(q_i)^{-1} (p+_i - p_i - c_w)``, so ``p+ = p + M(q) h + c_w + (w - c_w)`` holds for the
 true ``h``, and the world-frame noise, rotated into the body frame, has radius at most
-``Σ_j ||g_j||_2 / |q|`` per body dim (``g_j`` the noise generators of the pair).
+``max_v ||v||_2 / |q|`` per body dim, over the vertices ``v`` of the pair's noise zonotope.
 """
 from __future__ import annotations
 
@@ -118,7 +118,7 @@ class BodyFrame:
         norm = self.heading_vectors(x_minus).norm(dim=-1).amin().clamp_min(1e-12)
         out = radius.clone()
         for pair in self.rotated_pairs:
-            out[list(pair)] = noise_generators[list(pair)].norm(dim=0).sum() / norm
+            out[list(pair)] = _largest_norm(noise_generators[list(pair)]) / norm
         return out
 
     def heading_form(self, center: Tensor, generators: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -172,3 +172,15 @@ def _matrix(q: Tensor) -> Tensor:
 def _solve(q: Tensor, v: Tensor) -> Tensor:
     """``M(q)^{-1} v = M(q)ᵀ v / |q|²`` row-wise: ``[N, 2]``."""
     return (_matrix(q).transpose(-1, -2) @ v.unsqueeze(-1)).squeeze(-1) / q.square().sum(-1, keepdim=True)
+
+
+def _largest_norm(generators: Tensor, max_enumerated: int = 12) -> Tensor:
+    """``max ||v||_2`` over the vertices ``v`` of ``Z(0, generators [2, p])``: the largest support
+    of the zonotope along a unit direction, so its radius per dim under every rotation (by
+    enumeration; ``Σ_j ||g_j||``, an upper bound, above ``max_enumerated`` non-zero generators)."""
+    generators = generators[:, generators.norm(dim=0) > 0]
+    p = generators.shape[1]
+    if p == 0 or p > max_enumerated:
+        return generators.norm(dim=0).sum()
+    signs = torch.cartesian_prod(*[generators.new_tensor([-1.0, 1.0])] * p).reshape(-1, p)
+    return (signs @ generators.T).norm(dim=-1).amax()

@@ -54,7 +54,7 @@ import torch
 from scipy.spatial import cKDTree
 from torch import Tensor
 
-from torchrl_brsl.reach.hinges import fit_hinges, hinge_features
+from torchrl_brsl.reach.hinges import Features, feature_values, fit_features, product_relaxation
 
 
 class Cells(NamedTuple):
@@ -68,8 +68,9 @@ class Cells(NamedTuple):
         directions: ``[f, d]`` the split directions (scaled units).
         weights: ``[n, d]`` each output's input weights in the bound's distance.
         low, high: ``[n, M, f]`` the cell boxes in those directions.
-        slopes: ``[n, M, d + H]`` least-squares slopes of the output on ``z`` (scaled units), then
-            on the output's hinge features ``relu(hinge_directions @ z - hinge_knots)``.
+        slopes: ``[n, M, d + H + Q]`` least-squares slopes of the output on ``z`` (scaled units),
+            then on the output's hinge features ``relu(hinge_directions @ z - hinge_knots)``
+            and product features (:func:`~torchrl_brsl.reach.hinges.product_features`).
         intercepts: ``[n, M]`` intercept at ``z = 0`` plus the centre of the error interval.
         errors: ``[n, M]`` half-widths of the error interval within ``delta`` of the cell's data
             (model error, noise not included); a query at distance ``D > delta`` adds
@@ -80,6 +81,8 @@ class Cells(NamedTuple):
         score: ``[n, M]`` the error in noise units, lower is tighter (selects among cells).
         hinge_directions: ``[n, H, d]`` each output's hinges (padding: zero rows).
         hinge_knots: ``[n, H]`` their knots (padding: 1, a feature that is always 0).
+        product_directions: ``[n, Q, 2, d]`` each output's products' factors (padding: zeros).
+        product_knots: ``[n, Q, 2]`` the factors' centres (padding: 0).
         members: ``[n, N]`` the cell holding each data point, per output.
     """
 
@@ -95,6 +98,8 @@ class Cells(NamedTuple):
     score: Tensor
     hinge_directions: Tensor
     hinge_knots: Tensor
+    product_directions: Tensor
+    product_knots: Tensor
     members: Tensor
 
 
@@ -158,7 +163,7 @@ def tree_nodes(features: Tensor, inputs: Tensor, target: Tensor, leaf_size: int,
 
 def fit_cells(inputs: Tensor, targets: Tensor, noise_radius: Tensor, n_actions: int, *, scale: Tensor | None = None,
               leaf_size: int | None = None, overlap: float = 0.15, extend: float = 0.25,
-              lipschitz_margin: float = 1.0, use_hinges: bool = True) -> Cells:
+              lipschitz_margin: float = 1.0, use_features: bool = True) -> Cells:
     """Fit local affine models and their error intervals, one tree of cells per output.
 
     Per output, two trees are grown (splits along the inputs only, and also along the
@@ -185,8 +190,9 @@ def fit_cells(inputs: Tensor, targets: Tensor, noise_radius: Tensor, n_actions: 
             on the edge of its speeds); a query there is farther from the data, which the
             per-query distance term of the error accounts for.
         lipschitz_margin: factor (>= 1) on the data's Lipschitz constants.
-        use_hinges: offer each output its hinge features (:func:`~torchrl_brsl.reach.hinges.fit_hinges`,
-            kept where the probe error says they help); ``False``: leaves affine in ``z`` only.
+        use_features: offer each output its hinge and product features
+            (:func:`~torchrl_brsl.reach.hinges.fit_features`, kept where the probe error says they
+            help); ``False``: leaves affine in ``z`` only.
 
     Returns:
         The stacked :class:`Cells`, root first for every output.
@@ -198,16 +204,19 @@ def fit_cells(inputs: Tensor, targets: Tensor, noise_radius: Tensor, n_actions: 
     kinks = split_directions(n_states, n_actions, scale, inputs.dtype)  # the hinges' candidate directions
     axes = torch.zeros(directions.shape[0], dtype=torch.bool)
     axes[:inputs.shape[1]] = True
-    no_hinges = (inputs.new_zeros(0, inputs.shape[1]), inputs.new_zeros(0), inputs.new_zeros(0))
+    d = inputs.shape[1]
+    no_features = Features(inputs.new_zeros(0, d), inputs.new_zeros(0), inputs.new_zeros(0, 2, d),
+                           inputs.new_zeros(0, 2), inputs.new_zeros(0))
     kinks_features = inputs @ kinks.T
-    per_output, chosen, hinges = [], [], []
+    per_output, chosen, fitted = [], [], []
     for k in range(targets.shape[1]):
-        options = [no_hinges]
-        if use_hinges:
-            options.append(fit_hinges(kinks_features, kinks, inputs, targets[:, k], noise_radius[k]))
-        candidates = []  # (cells, weights, hinges)
-        for hinge_dirs, knots, coefficients in options:
-            target = targets[:, k] - hinge_features(inputs, hinge_dirs, knots) @ coefficients  # what the hinges leave
+        options = [no_features]
+        if use_features:
+            options.append(fit_features(kinks_features, kinks, inputs, targets[:, k], noise_radius[k],
+                                        n_actions=n_actions))
+        candidates = []  # (cells, weights, features)
+        for option in options:
+            target = targets[:, k] - feature_values(inputs, option) @ option.coefficients  # what the features leave
             for allowed in (axes, torch.ones_like(axes)):  # splits along the inputs only, or also the pairs
                 nodes = tree_nodes(features, inputs, target, leaf_size, allowed)
                 leaves = [node for node in nodes if len(node[0]) < 2 * leaf_size] or nodes[:1]
@@ -216,45 +225,54 @@ def fit_cells(inputs: Tensor, targets: Tensor, noise_radius: Tensor, n_actions: 
                 relevance = input_relevance(torch.stack([theta[1:] for theta, _ in fits]), floor=0.0)[0]
                 for weights in (relevance.clamp_min(floor) for floor in METRIC_FLOORS):
                     parts = _output_cells(inputs, boxes, fits, noise_radius[k], weights, directions, lipschitz_margin)
-                    parts[2] = torch.cat((parts[2], coefficients.expand(parts[2].shape[0], -1)), dim=-1)
-                    candidates.append((parts, weights, (hinge_dirs, knots)))
+                    parts[2] = torch.cat((parts[2], option.coefficients.expand(parts[2].shape[0], -1)), dim=-1)
+                    candidates.append((parts, weights, option))
         best = min(candidates, key=lambda c: _probe_error(*c, inputs, directions, n_states))
         per_output.append(best[0])
         chosen.append(best[1])
-        hinges.append(best[2])
-    n_hinges = max(len(knots) for _, knots in hinges)
-    hinge_directions = torch.stack([_pad_rows(a, n_hinges, 0.0) for a, _ in hinges])
-    hinge_knots = torch.stack([_pad_rows(c, n_hinges, 1.0) for _, c in hinges])
+        fitted.append(best[2])
+    n_hinges = max(len(f.hinge_knots) for f in fitted)
+    n_products = max(len(f.product_knots) for f in fitted)
     width = max(parts[0].shape[0] for parts in per_output)
     fill = (torch.inf, -torch.inf, 0.0, 0.0, 0.0, 0.0, 0.0, torch.inf)
-    for parts in per_output:  # slopes of every output over d + n_hinges columns
-        parts[2] = torch.nn.functional.pad(parts[2], (0, inputs.shape[1] + n_hinges - parts[2].shape[1]))
+    for parts, f in zip(per_output, fitted):  # slopes of every output over d + n_hinges + n_products columns
+        linear, hinge, product = parts[2].split((d, len(f.hinge_knots), len(f.product_knots)), dim=-1)
+        parts[2] = torch.cat((linear, torch.nn.functional.pad(hinge, (0, n_hinges - hinge.shape[-1])),
+                              torch.nn.functional.pad(product, (0, n_products - product.shape[-1]))), dim=-1)
     stacked = [torch.stack([_pad_rows(parts[i], width, fill[i]) for parts in per_output]) for i in range(len(fill))]
     members = torch.stack([parts[-1] for parts in per_output])
-    return Cells(directions, torch.stack(chosen), *stacked, hinge_directions, hinge_knots, members)
+    return Cells(directions, torch.stack(chosen), *stacked,
+                 torch.stack([_pad_rows(f.hinge_directions, n_hinges, 0.0) for f in fitted]),
+                 torch.stack([_pad_rows(f.hinge_knots, n_hinges, 1.0) for f in fitted]),
+                 torch.stack([_pad_rows(f.product_directions, n_products, 0.0) for f in fitted]),
+                 torch.stack([_pad_rows(f.product_knots, n_products, 0.0) for f in fitted]), members)
 
 
 PROBE_RADII = (0.01, 0.03, 0.1)
 """Radii (scaled units, on the state inputs) of the probe sets that rank candidate cells."""
 
 
-def _probe_error(parts: list[Tensor], weights: Tensor, hinges: tuple[Tensor, Tensor], inputs: Tensor,
+def _probe_error(parts: list[Tensor], weights: Tensor, features: Features, inputs: Tensor,
                  directions: Tensor, n_states: int) -> float:
     """Mean error bound over boxes of :data:`PROBE_RADII` around every data point (on the state
     inputs; uncovered probes count as twice the largest leaf error)."""
     cells = Cells(directions, weights.unsqueeze(0), *(part.unsqueeze(0) for part in parts[:-1]),
-                  *(part.unsqueeze(0) for part in hinges), parts[-1].unsqueeze(0))
+                  *(part.unsqueeze(0) for part in features[:4]), parts[-1].unsqueeze(0))
     centre_distance = leaf_distance(cells, inputs, inputs)  # [N, 1, M]
     total = 0.0
     for radius in PROBE_RADII:
         z_radius = torch.zeros_like(inputs)
         z_radius[:, :n_states] = radius
-        h_center = (inputs @ hinges[0].T - hinges[1]).unsqueeze(-2)  # [N, 1, H]
-        h_radius = (z_radius @ hinges[0].abs().T).unsqueeze(-2)
+        h_center = (inputs @ features.hinge_directions.T - features.hinge_knots).unsqueeze(-2)  # [N, 1, H]
+        h_radius = (z_radius @ features.hinge_directions.abs().T).unsqueeze(-2)
+        p_center = torch.einsum("nd,qkd->nqk", inputs, features.product_directions) - features.product_knots
+        p_radius = torch.einsum("nd,qkd->nqk", z_radius, features.product_directions.abs())
+        *_, p_low, p_high = product_relaxation(p_center, p_radius)
+        low = torch.cat(((h_center - h_radius).clamp_min(0), p_low.unsqueeze(-2)), -1)
+        high = torch.cat(((h_center + h_radius).clamp_min(0), p_high.unsqueeze(-2)), -1)
         distance = centre_distance + (weights * z_radius).norm(dim=-1)[:, None, None]
         _, errors, covered = leaf_bounds(cells, inputs, z_radius, directions[:, :n_states].abs().sum(-1) * radius,
-                                         (h_center - h_radius).clamp_min(0), (h_center + h_radius).clamp_min(0),
-                                         distance)
+                                         low, high, distance)
         total += float(torch.where(covered, errors[:, 0], 2 * parts[4].max()).mean())
     return total
 
@@ -381,8 +399,8 @@ def _nearest_distance(points: Tensor) -> Tensor:
     return torch.as_tensor(np.asarray(dist)[:, 1], dtype=points.dtype)
 
 
-def leaf_bounds(cells: Cells, z_center: Tensor, z_radius: Tensor, phi_radius: Tensor, hinge_low: Tensor,
-                hinge_high: Tensor, distance: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def leaf_bounds(cells: Cells, z_center: Tensor, z_radius: Tensor, phi_radius: Tensor, feature_low: Tensor,
+                feature_high: Tensor, distance: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """Per output, one leaf's affine model and an error bound valid over a whole query set.
 
     The leaves tile the data's region, so every ``z`` of the query set lies in one of the
@@ -397,8 +415,8 @@ def leaf_bounds(cells: Cells, z_center: Tensor, z_radius: Tensor, phi_radius: Te
         z_center, z_radius: ``[..., d]`` the query's ``z``-box (scaled units).
         phi_radius: ``[..., f]`` its exact radius along each split direction (around
             ``directions @ z_center``).
-        hinge_low, hinge_high: ``[..., n, H]`` the range of each output's hinge features over
-            the query set.
+        feature_low, feature_high: ``[..., n, H + Q]`` the range of each output's hinge and
+            product features over the query set.
         distance: ``[..., n, M]`` ``D_l`` in each output's weighted metric (:func:`leaf_distance`).
 
     Returns:
@@ -413,9 +431,10 @@ def leaf_bounds(cells: Cells, z_center: Tensor, z_radius: Tensor, phi_radius: Te
     centre_out = torch.maximum(cells.low - phi, phi - cells.high).amax(-1)
     index = torch.where(centre_out <= 0, cells.score, torch.inf).argmin(-1)  # [..., n]
     flat = index + torch.arange(n, device=index.device) * n_leaves
-    # every leaf's model at the query's centre, the hinges at the middle of their range
-    center = torch.cat((z_center.unsqueeze(-2).expand(*hinge_low.shape[:-1], -1), (hinge_low + hinge_high) / 2), -1)
-    half = torch.cat((z_radius.unsqueeze(-2).expand(*hinge_low.shape[:-1], -1), (hinge_high - hinge_low) / 2), -1)
+    # every leaf's model at the query's centre, the features at the middle of their range
+    batch = feature_low.shape[:-1]
+    center = torch.cat((z_center.unsqueeze(-2).expand(*batch, -1), (feature_low + feature_high) / 2), -1)
+    half = torch.cat((z_radius.unsqueeze(-2).expand(*batch, -1), (feature_high - feature_low) / 2), -1)
     prediction = torch.einsum("...kw,kmw->...km", center, cells.slopes) + cells.intercepts  # [..., n, M]
     chosen = prediction.gather(-1, index.unsqueeze(-1))
     slope_gap = cells.slopes - cells.slopes.reshape(n * n_leaves, width)[flat].unsqueeze(-2)  # [..., n, M, d + H]

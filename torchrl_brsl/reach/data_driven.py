@@ -10,7 +10,7 @@ from torch import Tensor, nn
 
 from torchrl_brsl.reach.body_frame import BodyFrame
 from torchrl_brsl.reach.cells import Cells, fit_cells, leaf_bounds, leaf_distance
-from torchrl_brsl.reach.hinges import relu_relaxation
+from torchrl_brsl.reach.hinges import product_relaxation, relu_relaxation
 from torchrl_brsl.reach.lipschitz import covering_radius, residual_lipschitz
 from torchrl_brsl.sets import Zonotope, pad_generators, reduce_girard
 from torchrl_brsl.sets._checks import check_tensor, skip_value_checks
@@ -97,7 +97,7 @@ class DataDrivenReach(nn.Module):
     def fit(cls, x_minus, x_plus, u_minus, noise: Zonotope, translation_invariant_dims: Sequence[int] = (),
             max_generators: int | None = None, n_neighbors: int = 10, lipschitz_margin: float | None = None,
             domain: tuple | None = None, method: str = "local", leaf_size: int | None = None,
-            overlap: float = 0.15, extend: float = 0.25, hinges: bool = True, body_frame: BodyFrame | None = None,
+            overlap: float = 0.15, extend: float = 0.25, features: bool = True, body_frame: BodyFrame | None = None,
             dtype: torch.dtype = torch.float64) -> DataDrivenReach:
         """Fit the model and its error zonotope from offline transitions.
 
@@ -122,8 +122,9 @@ class DataDrivenReach(nn.Module):
                 step by the set itself; ``"global"``: one affine fit for the whole data region
                 (plan-independent generators; much wider on nonlinear robots).
             leaf_size, overlap, extend: the cells of ``method="local"`` (see :func:`fit_cells`).
-            hinges: offer the local model hinge features for saturating inputs (``use_hinges`` of
-                :func:`fit_cells`); ``False`` for comparison.
+            features: offer the local model hinge features for saturating inputs and products of a
+                state and an action input (``use_features`` of :func:`fit_cells`); ``False`` for
+                comparison.
             body_frame: for a yaw-invariant planar robot, its position and heading dims
                 (:class:`~torchrl_brsl.reach.body_frame.BodyFrame`): the local model then fits the
                 position step (and a heading vector) in the body frame, without the heading among
@@ -211,7 +212,7 @@ class DataDrivenReach(nn.Module):
                 local_select[[d for pair in body_frame.rotated_pairs for d in pair]] = 0.0  # added after the rotation
             params.update(_local_params(fit_cells(scaled, target, noise_radius, m, scale=scale, leaf_size=leaf_size,
                                                   overlap=overlap, extend=extend, lipschitz_margin=lipschitz_margin,
-                                                  use_hinges=hinges),
+                                                  use_features=features),
                                         scale, free, local_select, w_c))
         return cls(params, fixed, delta, max_generators, body_frame)
 
@@ -393,18 +394,32 @@ class DataDrivenReach(nn.Module):
         # hinge pre-activations over the set, exactly: [..., n, H]
         hinge_center = torch.einsum("...d,khd->...kh", z_center, cells.hinge_directions) - cells.hinge_knots
         hinge_radius = torch.einsum("khf,...fp->...khp", cells.hinge_directions[..., :n_free], z_generators).abs().sum(-1)
-        slope, offset_h, hinge_low, hinge_high = relu_relaxation(hinge_center, hinge_radius)
+        slope, offset_h, feature_low, feature_high = relu_relaxation(hinge_center, hinge_radius)
+        n_products = cells.product_knots.shape[-2]
+        if n_products:  # the products' factors over the set, exactly: [..., n, Q, 2]
+            factor_center = torch.einsum("...d,kqjd->...kqj", z_center, cells.product_directions) - cells.product_knots
+            factor_radius = torch.einsum("kqjf,...fp->...kqjp", cells.product_directions[..., :n_free],
+                                         z_generators).abs().sum(-1)
+            factor_slope, constant, product_error, low, high = product_relaxation(factor_center, factor_radius)
+            feature_low, feature_high = torch.cat((feature_low, low), -1), torch.cat((feature_high, high), -1)
         distance = leaf_distance(cells, self._scaled_data, z_center.detach(), z_radius.detach(), self._weighted_data)
-        index, errors, covered = leaf_bounds(cells, z_center, z_radius, phi_radius, hinge_low, hinge_high, distance)
-        n, m = self.state_dim, action.shape[-1]
-        packed = self._leaf_rows[index + self._output_index * self.cell_low.shape[1]]  # [..., n, n + m + 1 + H]
-        A, B, offset, theta = packed.split((n, m, 1, cells.hinge_knots.shape[-1]), dim=-1)
+        index, errors, covered = leaf_bounds(cells, z_center, z_radius, phi_radius, feature_low, feature_high, distance)
+        n, m, n_hinges = self.state_dim, action.shape[-1], cells.hinge_knots.shape[-1]
+        packed = self._leaf_rows[index + self._output_index * self.cell_low.shape[1]]  # [..., n, n + m + 1 + H + Q]
+        A, B, offset, theta, theta_p = packed.split((n, m, 1, n_hinges, n_products), dim=-1)
         # the hinges' relaxation relu(s) ∈ λ s + μ ± μ folds into the chosen leaf's affine model
-        along = torch.einsum("...kh,khd->...kd", theta * slope, cells.hinge_directions) / scale  # [..., n, d]
-        A = A.index_add(-1, self._free_tensor, along[..., :n_free])
-        B = B + along[..., n_free:]
+        along = torch.einsum("...kh,khd->...kd", theta * slope, cells.hinge_directions)  # [..., n, d]
         offset = offset + (theta * (offset_h - slope * cells.hinge_knots)).sum(-1, keepdim=True)
         errors = errors + (theta.abs() * offset_h).sum(-1)
+        if n_products:  # and so does the products' s1 s2 ∈ λ1 s1 + λ2 s2 + κ ± ε
+            along = along + torch.einsum("...kqj,kqjd->...kd", theta_p.unsqueeze(-1) * factor_slope,
+                                         cells.product_directions)
+            shift = constant - (factor_slope * cells.product_knots).sum(-1)
+            offset = offset + (theta_p * shift).sum(-1, keepdim=True)
+            errors = errors + (theta_p.abs() * product_error).sum(-1)
+        along = along / scale
+        A = A.index_add(-1, self._free_tensor, along[..., :n_free])
+        B = B + along[..., n_free:]
         new_center = (A @ center.unsqueeze(-1) + B @ action.unsqueeze(-1) + offset).squeeze(-1)
         carried, boxes = A @ generators, ()
         if self.body_frame is not None:
@@ -414,7 +429,11 @@ class DataDrivenReach(nn.Module):
             error = torch.diag_embed(errors)
         center = new_center
         if self._diagonal_noise is not None:
-            error = error + torch.diag_embed(self._diagonal_noise).expand_as(error)
+            # a box noise adds its radii to the axis-aligned columns: the error's (diagonal but for
+            # the rotated pairs' blocks, whose noise goes to the body frame's box instead)
+            error_noise, box_noise = self._noise_columns
+            error = error + error_noise
+            boxes = tuple(box + box_noise for box in boxes)
             new = (error, *boxes)
         else:
             new = (error, *boxes, self.noise_generators.expand(*center.shape, -1))
@@ -449,7 +468,8 @@ class DataDrivenReach(nn.Module):
         blocks = torch.einsum("...kij,kl->...kilj", blocks, eye).reshape(*blocks.shape[:-3], 2 * pairs, 2 * pairs)
         rows = blocks.new_zeros(*blocks.shape[:-1], n).index_copy(-1, index, blocks)
         error = torch.diag_embed(errors.index_fill(-1, index, 0.0)).index_copy(-2, index, rows)
-        box_columns = box.new_zeros(*box.shape[:-2], n, 2 * pairs).index_copy(-2, index, torch.diag_embed(box.flatten(-2)))
+        box_columns = box.new_zeros(*box.shape[:-2], n, 2 * pairs)
+        box_columns = box_columns.index_copy(-2, index, torch.diag_embed(box.flatten(-2)))
         return new_center, carried, error, box_columns
 
     @property
@@ -466,7 +486,7 @@ class DataDrivenReach(nn.Module):
 
     @property
     def _leaf_rows(self) -> Tensor:
-        """Per (output, leaf), flattened: ``[A row, B row, offset, hinge slopes]`` ``[n M, n + m + 1 + H]``."""
+        """Per (output, leaf), flattened: ``[A row, B row, offset, feature slopes]`` ``[n M, n + m + 1 + H + Q]``."""
         key = ("leaf rows",)
         if key not in self._cache:
             d = self.cell_directions.shape[1]
@@ -482,7 +502,8 @@ class DataDrivenReach(nn.Module):
             self._cache[key] = Cells(self.cell_directions, self.cell_weights, self.cell_low, self.cell_high,
                                      self.cell_slopes, self.cell_intercepts, self.cell_errors, self.cell_lipschitz,
                                      self.cell_delta, self.cell_score, self.cell_hinge_directions,
-                                     self.cell_hinge_knots, self.cell_members)
+                                     self.cell_hinge_knots, self.cell_product_directions, self.cell_product_knots,
+                                     self.cell_members)
         return self._cache[key]
 
     @property
@@ -520,6 +541,20 @@ class DataDrivenReach(nn.Module):
         if ("free",) not in self._cache:
             self._cache[("free",)] = self.free_dims
         return self._cache[("free",)]
+
+    @property
+    def _noise_columns(self) -> tuple[Tensor, Tensor | None]:
+        """A box noise as additions to the step's error columns ``[n, n]`` and, with a body frame,
+        to its box columns ``[n, 2P]`` (the rotated dims' noise)."""
+        key = ("noise columns",)
+        if key not in self._cache:
+            noise, box = self._diagonal_noise, None
+            if self.body_frame is not None:
+                index = self._rotated_dims[0]
+                box = noise.new_zeros(self.state_dim, len(index)).index_copy(0, index, torch.diag(noise[index]))
+                noise = noise.index_fill(0, index, 0.0)
+            self._cache[key] = (torch.diag(noise), box)
+        return self._cache[key]
 
     @property
     def _diagonal_noise(self) -> Tensor | None:
@@ -622,6 +657,10 @@ class DataDrivenReach(nn.Module):
         if "domain_low" not in params.keys():  # written before domains existed: unrestricted
             size = params["state_matrix"].shape[0] + params["input_matrix"].shape[1]
             params["domain_low"], params["domain_high"] = _domain(None, size, params["state_matrix"].dtype)
+        if "cell_low" in params.keys() and "cell_product_knots" not in params.keys():  # written before products
+            n, d = params["cell_hinge_directions"].shape[0], params["cell_directions"].shape[1]
+            params["cell_product_directions"] = params["cell_low"].new_zeros(n, 0, 2, d)
+            params["cell_product_knots"] = params["cell_low"].new_zeros(n, 0, 2)
         frame = state.get("body_frame")
         return cls(params, state["translation_invariant_dims"], state["covering_radius"], state["max_generators"],
                    None if frame is None else BodyFrame(*frame))
@@ -670,6 +709,7 @@ def _local_params(cells: Cells, scale: Tensor, free: list[int], select: Tensor, 
                 cell_lipschitz=cells.lipschitz, cell_delta=cells.delta, cell_score=cells.score,
                 cell_slopes=cells.slopes, cell_intercepts=cells.intercepts,
                 cell_hinge_directions=cells.hinge_directions, cell_hinge_knots=cells.hinge_knots,
+                cell_product_directions=cells.product_directions, cell_product_knots=cells.product_knots,
                 cell_members=cells.members)
 
 
