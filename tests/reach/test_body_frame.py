@@ -52,13 +52,12 @@ def test_the_rotation_enclosure_needs_its_second_order_term():
     assert outside > 0
 
 
-# system, offline steps, data seed, share of the 20 random plans the model must claim. Not the
-# unicycle with 500 steps: it claims 1 of 20 (its speed clip at 0 and 1 m/s, which random plans
-# reach, has no hinge along it, so its sets leave the data's region). The bicycle's data seed 1
-# caught a step that summed the world noise's generators with the rotated error's pairwise
-# (5 states outside) instead of adding both sets.
+# system, offline steps, data seed, share of the 20 random plans the model must claim (measured:
+# bicycle 15-19, unicycle 16 and 20: its speed clip at 0 and 1 m/s has a hinge along v + dt a).
+# The bicycle's data seed 1 caught a step that summed the world noise's generators with the
+# rotated error's pairwise (5 states outside) instead of adding both sets.
 CLAIMED = [("bicycle", 500, 0, 0.5), ("bicycle", 500, 1, 0.5), ("bicycle", 2000, 0, 0.5),
-           ("unicycle", 2000, 0, 0.4)]  # unicycle: 9 of 20 measured
+           ("unicycle", 500, 0, 0.6), ("unicycle", 2000, 0, 0.8)]
 
 
 @pytest.mark.parametrize("name, num, seed, min_claimed", CLAIMED)
@@ -70,9 +69,10 @@ def test_sampled_true_states_lie_in_the_body_frame_sets(name, num, seed, min_cla
 
 
 def test_a_weakened_body_frame_bound_is_caught_by_the_sampling():
-    """Teeth: the leaves' error intervals scaled by 0.3 let sampled states out."""
+    """Teeth: the leaves' error intervals scaled by 0.3 let sampled states out (measured: 83 of
+    51,000 on the bicycle with 500 steps; with 2,000 none, the bound has that slack there)."""
     system = KinematicBicycle()
-    reach = fit(system, 2000, body_frame=system.body_frame)
+    reach = fit(system, 500, body_frame=system.body_frame)
     reach.cell_errors.mul_(0.3)
     assert sampled(system, reach).violations > 0
 
