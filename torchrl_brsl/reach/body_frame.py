@@ -40,6 +40,9 @@ from torch import Tensor
 class BodyFrame:
     """Which state dims are the planar position and the heading of a yaw-invariant robot.
 
+    The state's other dims must not depend on the heading (body-frame speeds and turn rates):
+    world-frame velocity vectors would have to rotate too, which this frame does not do.
+
     Args:
         position: the two state dims ``(x, y)`` of the planar position (translation invariant).
         heading: one dim holding the heading angle [rad], or two dims holding
