@@ -455,7 +455,7 @@ class DataDrivenReach(nn.Module):
         remainder on the rotated dims. All pairs turn in one batched rotation.
         """
         frame, w_c, n = self.body_frame, self.noise_center, self.state_dim
-        index, moves = self._rotated_dims  # [2P] the rotated dims, pair by pair; 1.0 on the position's
+        index, moves, eye = self._rotated_dims  # [2P] the rotated dims, pair by pair; 1.0 on the position's
         pairs = len(index) // 2
         q0, q_gens, q_error = frame.heading_form(center, generators)
         heading = (q0.unsqueeze(-2), q_gens.unsqueeze(-3), q_error.unsqueeze(-2))  # one heading for every pair
@@ -464,7 +464,6 @@ class DataDrivenReach(nn.Module):
             carried[..., index, :].unflatten(-2, (pairs, 2)), errors[..., index].unflatten(-1, (pairs, 2)))
         new_center = new_center.index_copy(-1, index, rotated.flatten(-2) + w_c[index] + moves * center[..., index])
         carried = carried.index_copy(-2, index, gens.flatten(-3, -2) + moves.unsqueeze(-1) * generators[..., index, :])
-        eye = torch.eye(pairs, dtype=blocks.dtype, device=blocks.device)
         blocks = torch.einsum("...kij,kl->...kilj", blocks, eye).reshape(*blocks.shape[:-3], 2 * pairs, 2 * pairs)
         rows = blocks.new_zeros(*blocks.shape[:-1], n).index_copy(-1, index, blocks)
         error = torch.diag_embed(errors.index_fill(-1, index, 0.0)).index_copy(-2, index, rows)
@@ -473,15 +472,16 @@ class DataDrivenReach(nn.Module):
         return new_center, carried, error, box_columns
 
     @property
-    def _rotated_dims(self) -> tuple[Tensor, Tensor]:
-        """The body frame's rotated dims, pair by pair ``[2P]``, and 1.0 where they are the position's."""
+    def _rotated_dims(self) -> tuple[Tensor, Tensor, Tensor]:
+        """The body frame's rotated dims, pair by pair ``[2P]``, 1.0 where they are the position's, and
+        the ``[P, P]`` identity that lays the pairs' blocks on the diagonal."""
         key = ("rotated dims",)
         if key not in self._cache:
             pairs = self.body_frame.rotated_pairs
             index = torch.tensor([d for pair in pairs for d in pair], device=self.noise_center.device)
             moves = torch.tensor([float(pair == self.body_frame.position) for pair in pairs for _ in pair],
                                  dtype=self.noise_center.dtype, device=self.noise_center.device)
-            self._cache[key] = (index, moves)
+            self._cache[key] = (index, moves, torch.eye(len(pairs), dtype=moves.dtype, device=moves.device))
         return self._cache[key]
 
     @property
