@@ -25,8 +25,9 @@ demo: $(STAMP)
 demo-reach: $(STAMP)
 	$(PY) -m torchrl_brsl.demo
 
+# one worker per core (tests are grouped by file, which keeps a module's fixtures on one worker)
 test: $(STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n auto --dist loadfile
 
 bench: $(STAMP)
 	$(PY) benchmarks/bench_core.py
