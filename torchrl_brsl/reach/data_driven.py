@@ -9,9 +9,9 @@ from tensordict import TensorDict
 from torch import Tensor, nn
 
 from torchrl_brsl.reach.body_frame import BodyFrame
-from torchrl_brsl.reach.cells import Cells, fit_cells, leaf_bounds, leaf_distance
-from torchrl_brsl.reach.hinges import product_relaxation, relu_relaxation
+from torchrl_brsl.reach.cells import Cells, fit_cells
 from torchrl_brsl.reach.lipschitz import covering_radius, residual_lipschitz
+from torchrl_brsl.reach.local_step import LocalStep
 from torchrl_brsl.sets import Zonotope, pad_generators, reduce_girard
 from torchrl_brsl.sets._checks import check_tensor, skip_value_checks
 
@@ -379,110 +379,16 @@ class DataDrivenReach(nn.Module):
         return stack_steps(centers, sets), covered
 
     def step_sets(self, center: Tensor, generators: Tensor, action: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """One step of a local model: ``R_j = Z(center, generators)`` under ``action`` ``[..., m]``.
+        """One step of a local model: ``R_j = Z(center, generators)`` under ``action`` ``[..., m]``
+        (:class:`~torchrl_brsl.reach.local_step.LocalStep`).
 
         Returns:
             ``(center [..., n], generators [..., n, p'], covered [...])`` of ``R_{j+1}``
             (generators reduced to ``max_generators`` when set).
         """
-        free, scale = self._free_index, self.input_scale
-        n_free, cells = len(free), self._cells
-        z_center = torch.cat((center[..., free], action), dim=-1) / scale
-        z_generators = generators[..., free, :] / scale[:n_free, None]  # [..., n_F, p] (actions are exact)
-        phi_radius = (cells.directions[:, :n_free] @ z_generators).abs().sum(-1)  # exact interval hull per direction
-        z_radius = torch.cat((z_generators.abs().sum(-1), torch.zeros_like(action)), dim=-1)
-        # hinge pre-activations over the set, exactly: [..., n, H]
-        hinge_center = torch.einsum("...d,khd->...kh", z_center, cells.hinge_directions) - cells.hinge_knots
-        hinge_radius = torch.einsum("khf,...fp->...khp", cells.hinge_directions[..., :n_free], z_generators).abs().sum(-1)
-        slope, offset_h, feature_low, feature_high = relu_relaxation(hinge_center, hinge_radius)
-        n_products = cells.product_knots.shape[-2]
-        if n_products:  # the products' factors over the set, exactly: [..., n, Q, 2]
-            factor_center = torch.einsum("...d,kqjd->...kqj", z_center, cells.product_directions) - cells.product_knots
-            factor_radius = torch.einsum("kqjf,...fp->...kqjp", cells.product_directions[..., :n_free],
-                                         z_generators).abs().sum(-1)
-            factor_slope, constant, product_error, low, high = product_relaxation(factor_center, factor_radius)
-            feature_low, feature_high = torch.cat((feature_low, low), -1), torch.cat((feature_high, high), -1)
-        distance = leaf_distance(cells, self._scaled_data, z_center.detach(), z_radius.detach(), self._weighted_data)
-        index, errors, covered = leaf_bounds(cells, z_center, z_radius, phi_radius, feature_low, feature_high, distance)
-        n, m, n_hinges = self.state_dim, action.shape[-1], cells.hinge_knots.shape[-1]
-        packed = self._leaf_rows[index + self._output_index * self.cell_low.shape[1]]  # [..., n, n + m + 1 + H + Q]
-        A, B, offset, theta, theta_p = packed.split((n, m, 1, n_hinges, n_products), dim=-1)
-        # the hinges' relaxation relu(s) ∈ λ s + μ ± μ folds into the chosen leaf's affine model
-        along = torch.einsum("...kh,khd->...kd", theta * slope, cells.hinge_directions)  # [..., n, d]
-        offset = offset + (theta * (offset_h - slope * cells.hinge_knots)).sum(-1, keepdim=True)
-        errors = errors + (theta.abs() * offset_h).sum(-1)
-        if n_products:  # and so does the products' s1 s2 ∈ λ1 s1 + λ2 s2 + κ ± ε
-            along = along + torch.einsum("...kqj,kqjd->...kd", theta_p.unsqueeze(-1) * factor_slope,
-                                         cells.product_directions)
-            shift = constant - (factor_slope * cells.product_knots).sum(-1)
-            offset = offset + (theta_p * shift).sum(-1, keepdim=True)
-            errors = errors + (theta_p.abs() * product_error).sum(-1)
-        along = along / scale
-        A = A.index_add(-1, self._free_tensor, along[..., :n_free])
-        B = B + along[..., n_free:]
-        new_center = (A @ center.unsqueeze(-1) + B @ action.unsqueeze(-1) + offset).squeeze(-1)
-        carried, boxes = A @ generators, ()
-        if self.body_frame is not None:
-            new_center, carried, error, box = self._rotate_body_outputs(center, generators, new_center, carried, errors)
-            boxes = (box,)
-        else:
-            error = torch.diag_embed(errors)
-        center = new_center
-        if self._diagonal_noise is not None:
-            # a box noise adds its radii to the axis-aligned columns: the error's (diagonal but for
-            # the rotated pairs' blocks, whose noise goes to the body frame's box instead)
-            error_noise, box_noise = self._noise_columns
-            error = error + error_noise
-            boxes = tuple(box + box_noise for box in boxes)
-            new = (error, *boxes)
-        else:
-            new = (error, *boxes, self.noise_generators.expand(*center.shape, -1))
-        generators = torch.cat((carried, *new), dim=-1)
-        if self.max_generators is not None and generators.shape[-1] > self.max_generators:
-            with skip_value_checks():  # finite by construction
-                generators = reduce_girard(generators, self.max_generators)
-        return center, generators, covered
-
-    def _rotate_body_outputs(self, center: Tensor, generators: Tensor, new_center: Tensor, carried: Tensor,
-                             errors: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """Turn the body-frame outputs of a step into world-frame ones (:mod:`~torchrl_brsl.reach.body_frame`).
-
-        ``new_center`` ``[..., n]``, ``carried`` ``[..., n, p]`` (the old generators mapped) and
-        ``errors`` ``[..., n]`` (the leaves' interval radii) hold the body-frame model on the
-        ``P`` rotated pairs; the centre and generators come back in the world frame (a
-        position adds its old value), with the error generators ``[..., n, n]`` (diagonal but
-        for the rotated pairs' 2 x 2 blocks) and ``box`` ``[..., n, 2P]``, the enclosure's
-        remainder on the rotated dims. All pairs turn in one batched rotation.
-        """
-        frame, w_c, n = self.body_frame, self.noise_center, self.state_dim
-        index, moves, eye = self._rotated_dims  # [2P] the rotated dims, pair by pair; 1.0 on the position's
-        pairs = len(index) // 2
-        q0, q_gens, q_error = frame.heading_form(center, generators)
-        heading = (q0.unsqueeze(-2), q_gens.unsqueeze(-3), q_error.unsqueeze(-2))  # one heading for every pair
-        rotated, gens, blocks, box = frame.rotate(
-            heading, (new_center[..., index] - w_c[index]).unflatten(-1, (pairs, 2)),
-            carried[..., index, :].unflatten(-2, (pairs, 2)), errors[..., index].unflatten(-1, (pairs, 2)))
-        new_center = new_center.index_copy(-1, index, rotated.flatten(-2) + w_c[index] + moves * center[..., index])
-        carried = carried.index_copy(-2, index, gens.flatten(-3, -2) + moves.unsqueeze(-1) * generators[..., index, :])
-        blocks = torch.einsum("...kij,kl->...kilj", blocks, eye).reshape(*blocks.shape[:-3], 2 * pairs, 2 * pairs)
-        rows = blocks.new_zeros(*blocks.shape[:-1], n).index_copy(-1, index, blocks)
-        error = torch.diag_embed(errors.index_fill(-1, index, 0.0)).index_copy(-2, index, rows)
-        box_columns = box.new_zeros(*box.shape[:-2], n, 2 * pairs)
-        box_columns = box_columns.index_copy(-2, index, torch.diag_embed(box.flatten(-2)))
-        return new_center, carried, error, box_columns
-
-    @property
-    def _rotated_dims(self) -> tuple[Tensor, Tensor, Tensor]:
-        """The body frame's rotated dims, pair by pair ``[2P]``, 1.0 where they are the position's, and
-        the ``[P, P]`` identity that lays the pairs' blocks on the diagonal."""
-        key = ("rotated dims",)
-        if key not in self._cache:
-            pairs = self.body_frame.rotated_pairs
-            index = torch.tensor([d for pair in pairs for d in pair], device=self.noise_center.device)
-            moves = torch.tensor([float(pair == self.body_frame.position) for pair in pairs for _ in pair],
-                                 dtype=self.noise_center.dtype, device=self.noise_center.device)
-            self._cache[key] = (index, moves, torch.eye(len(pairs), dtype=moves.dtype, device=moves.device))
-        return self._cache[key]
+        if ("step",) not in self._cache:
+            self._cache[("step",)] = LocalStep(self)
+        return self._cache[("step",)](center, generators, action)
 
     @property
     def _leaf_rows(self) -> Tensor:
@@ -523,38 +429,10 @@ class DataDrivenReach(nn.Module):
         return self._cache[key]
 
     @property
-    def _free_tensor(self) -> Tensor:
-        key = ("free tensor",)
-        if key not in self._cache:
-            self._cache[key] = torch.tensor(self.free_dims, dtype=torch.long, device=self.cell_low.device)
-        return self._cache[key]
-
-    @property
-    def _output_index(self) -> Tensor:
-        key = ("outputs",)
-        if key not in self._cache:
-            self._cache[key] = torch.arange(self.state_dim, device=self.cell_low.device)
-        return self._cache[key]
-
-    @property
     def _free_index(self) -> list[int]:
         if ("free",) not in self._cache:
             self._cache[("free",)] = self.free_dims
         return self._cache[("free",)]
-
-    @property
-    def _noise_columns(self) -> tuple[Tensor, Tensor | None]:
-        """A box noise as additions to the step's error columns ``[n, n]`` and, with a body frame,
-        to its box columns ``[n, 2P]`` (the rotated dims' noise)."""
-        key = ("noise columns",)
-        if key not in self._cache:
-            noise, box = self._diagonal_noise, None
-            if self.body_frame is not None:
-                index = self._rotated_dims[0]
-                box = noise.new_zeros(self.state_dim, len(index)).index_copy(0, index, torch.diag(noise[index]))
-                noise = noise.index_fill(0, index, 0.0)
-            self._cache[key] = (torch.diag(noise), box)
-        return self._cache[key]
 
     @property
     def _diagonal_noise(self) -> Tensor | None:

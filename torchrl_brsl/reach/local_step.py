@@ -1,0 +1,161 @@
+"""One step of the local (leaf-wise) model on zonotopes: the hot path of plan-dependent reachability.
+
+A step ``R_j -> R_{j+1}`` under an action (:class:`LocalStep`) reads the set's ranges along
+every direction the model uses (the leaves' split directions, each output's hinges and
+product factors), relaxes the hinges and products over them, picks per output the leaf
+holding the set's centre with the worst error over the leaves the set meets
+(:func:`~torchrl_brsl.reach.cells.leaf_bounds`), folds the relaxations into that leaf's
+affine model and maps the set. A body-frame model then turns its rotated pairs into the world
+frame (:meth:`BodyFrame.rotate`); the noise comes last.
+
+Every quantity that depends only on the fitted model (the directions stacked in state units,
+the leaves' rows, the placements of the rotated pairs) is built once, so a step is a fixed,
+short sequence of batched tensor operations: its cost at batch 1 is the operations' count.
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from torchrl_brsl.reach.cells import leaf_bounds, leaf_distance
+from torchrl_brsl.reach.hinges import product_relaxation, relu_relaxation
+from torchrl_brsl.sets import reduce_girard
+from torchrl_brsl.sets._checks import skip_value_checks
+
+
+class LocalStep:
+    """The step of a fitted local :class:`~torchrl_brsl.reach.DataDrivenReach` (``method="local"``).
+
+    Built by the model (``model.step_sets`` calls it); holds views of the model's buffers and
+    what is derived from them, on the model's device and dtype.
+
+    Args:
+        model: a fitted local model.
+
+    Examples:
+        >>> step = LocalStep(reach)
+        >>> center, generators, covered = step(x0, torch.zeros(6, 0, dtype=torch.float64), u0)
+    """
+
+    def __init__(self, model):
+        cells, scale = model._cells, model.input_scale
+        like = dict(dtype=scale.dtype, device=scale.device)
+        n, n_leaves, _ = cells.slopes.shape
+        self.cells, self.state_dim, self.max_generators = cells, n, model.max_generators
+        self.free = torch.tensor(model.free_dims, dtype=torch.long, device=scale.device)
+        n_free = len(model.free_dims)
+        self.inv_scale, self.inv_scale_free = 1 / scale, 1 / scale[:n_free]
+        self.n_hinges, self.n_products = cells.hinge_knots.shape[-1], cells.product_knots.shape[-2]
+        # every direction whose range over the set a step needs, in state and action units: [F, d]
+        directions = torch.cat((cells.directions, cells.hinge_directions.flatten(0, 1),
+                                cells.product_directions.flatten(0, 2))) / scale
+        self.projection = directions.T.contiguous()
+        self.projection_free = directions[:, :n_free].contiguous()
+        self.knots = torch.cat((torch.zeros(cells.directions.shape[0], **like), cells.hinge_knots.flatten(),
+                                cells.product_knots.flatten()))
+        self.sizes = (cells.directions.shape[0], n * self.n_hinges, 2 * n * self.n_products)
+        self.hinge_directions = cells.hinge_directions / scale  # [n, H, d]
+        self.product_directions = cells.product_directions / scale  # [n, Q, 2, d]
+        self.product_knots = cells.product_knots
+        self.points, self.weighted_points = model._scaled_data, model._weighted_data
+        self.leaf_rows = model._leaf_rows
+        self.row_offset = torch.arange(n, device=scale.device) * n_leaves
+        self.widths = (n, model.action_dim, 1, self.n_hinges, self.n_products)
+        self.body_frame = model.body_frame
+        self._noise(model)
+        if self.body_frame is not None:
+            self._rotation_tables(model)
+
+    def _noise(self, model) -> None:
+        """The noise's columns: a box adds its radii to the error's diagonal, else its generators follow."""
+        noise = model._diagonal_noise
+        self.noise_generators = model.noise_generators if noise is None else None
+        self.noise_radius = torch.zeros_like(model.noise_center) if noise is None else noise
+        self.noise_center = model.noise_center
+
+    def _rotation_tables(self, model) -> None:
+        """The rotated dims pair by pair ``[2P]``, the placements of their blocks and boxes, their noise."""
+        pairs = self.body_frame.rotated_pairs
+        index = [d for pair in pairs for d in pair]
+        like = dict(dtype=model.noise_center.dtype, device=model.noise_center.device)
+        self.rotated = torch.tensor(index, dtype=torch.long, device=like["device"])
+        self.moves = torch.tensor([float(pair == self.body_frame.position) for pair in pairs for _ in pair], **like)
+        self.place = torch.zeros(self.state_dim, 2 * len(pairs), **like)  # dim of each rotated entry
+        self.place[index, torch.arange(2 * len(pairs))] = 1.0
+        self.place_pairs = self.place.unflatten(-1, (len(pairs), 2))  # [n, P, 2]
+        self.unrotated = torch.ones(self.state_dim, **like).index_fill(0, self.rotated, 0.0)
+        self.box_noise = self.noise_radius[self.rotated]  # the rotated dims' noise goes to the box
+        self.noise_radius = self.noise_radius * self.unrotated
+
+    def __call__(self, center: Tensor, generators: Tensor, action: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """``R_{j+1}`` of ``R_j = Z(center [..., n], generators [..., n, p])`` under ``action`` ``[..., m]``.
+
+        Returns:
+            ``(center [..., n], generators [..., n, p'], covered [...])`` (generators reduced to
+            ``max_generators`` when set); ``covered``: the step lies in the data's region.
+        """
+        cells, n = self.cells, self.state_dim
+        z_raw = torch.cat((center.index_select(-1, self.free), action), dim=-1)  # [..., d]
+        g_free = generators.index_select(-2, self.free)  # [..., n_F, p] (actions are exact)
+        ranges = (self.projection_free @ g_free).abs().sum(-1)  # exact interval radius per direction [..., F]
+        phi_radius, hinge_radius, factor_radius = ranges.split(self.sizes, -1)
+        _, hinge_center, factor_center = (z_raw @ self.projection - self.knots).split(self.sizes, -1)
+        slope, offset_h, feature_low, feature_high = relu_relaxation(hinge_center.unflatten(-1, (n, self.n_hinges)),
+                                                                     hinge_radius.unflatten(-1, (n, self.n_hinges)))
+        factors = (n, self.n_products, 2)
+        factor_slope, constant, product_error, low, high = product_relaxation(factor_center.unflatten(-1, factors),
+                                                                              factor_radius.unflatten(-1, factors))
+        feature_low, feature_high = torch.cat((feature_low, low), -1), torch.cat((feature_high, high), -1)
+        z_center = z_raw * self.inv_scale
+        z_radius = torch.cat((g_free.abs().sum(-1) * self.inv_scale_free, torch.zeros_like(action)), dim=-1)
+        distance = leaf_distance(cells, self.points, z_center.detach(), z_radius.detach(), self.weighted_points)
+        index, errors, covered = leaf_bounds(cells, z_center, z_radius, phi_radius, feature_low, feature_high, distance)
+        A, B, offset, theta, theta_p = self.leaf_rows[index + self.row_offset].split(self.widths, dim=-1)
+        # the relaxations relu(s) ∈ λ s + μ ± μ and s1 s2 ∈ λ1 s1 + λ2 s2 + κ ± ε fold into the leaf's model
+        along = (torch.einsum("...kh,khd->...kd", theta * slope, self.hinge_directions)
+                 + torch.einsum("...kqj,kqjd->...kd", theta_p.unsqueeze(-1) * factor_slope, self.product_directions))
+        shift = constant - (factor_slope * self.product_knots).sum(-1)
+        offset = offset.squeeze(-1) + (theta * (offset_h - slope * cells.hinge_knots)).sum(-1) + (theta_p * shift).sum(-1)
+        errors = errors + (theta.abs() * offset_h).sum(-1) + (theta_p.abs() * product_error).sum(-1)
+        A = A.index_add(-1, self.free, along[..., :len(self.inv_scale_free)])
+        B = B + along[..., len(self.inv_scale_free):]
+        new_center = (A @ center.unsqueeze(-1) + B @ action.unsqueeze(-1)).squeeze(-1) + offset
+        carried = A @ generators
+        if self.body_frame is None:
+            new = (torch.diag_embed(errors + self.noise_radius),)
+        else:
+            new_center, carried, new = self._rotate(center, generators, new_center, carried, errors)
+        if self.noise_generators is not None:
+            new = (*new, self.noise_generators.expand(*new_center.shape, -1))
+        generators = torch.cat((carried, *new), dim=-1)
+        if self.max_generators is not None and generators.shape[-1] > self.max_generators:
+            with skip_value_checks():  # finite by construction
+                generators = reduce_girard(generators, self.max_generators)
+        return new_center, generators, covered
+
+    def _rotate(self, center: Tensor, generators: Tensor, new_center: Tensor, carried: Tensor,
+                errors: Tensor) -> tuple[Tensor, Tensor, tuple[Tensor, Tensor]]:
+        """Turn the body-frame outputs of a step into world-frame ones.
+
+        ``new_center`` ``[..., n]``, ``carried`` ``[..., n, p]`` (the old generators mapped) and
+        ``errors`` ``[..., n]`` (the leaves' interval radii) hold the body-frame model on the
+        ``P`` rotated pairs. Returns the world-frame centre and carried generators (a position
+        adds its old value) and the new columns: the error ``[..., n, n]`` (diagonal but for the
+        rotated pairs' 2 x 2 blocks) and the enclosure's remainder on the rotated dims,
+        ``[..., n, 2P]``, each with the noise's radii added (the rotated dims' to the box).
+        """
+        frame, w_c, index = self.body_frame, self.noise_center[self.rotated], self.rotated
+        q0, q_gens, q_error = frame.heading_form(center, generators)
+        heading = (q0.unsqueeze(-2), q_gens.unsqueeze(-3), q_error.unsqueeze(-2))  # one heading for every pair
+        pairs = (-1, 2)
+        rotated, gens, blocks, box = frame.rotate(
+            heading, (new_center.index_select(-1, index) - w_c).unflatten(-1, pairs),
+            carried.index_select(-2, index).unflatten(-2, pairs), errors.index_select(-1, index).unflatten(-1, pairs))
+        moves = self.moves * center.index_select(-1, index)
+        new_center = new_center.index_copy(-1, index, rotated.flatten(-2) + w_c + moves)
+        moved = gens.flatten(-3, -2) + self.moves.unsqueeze(-1) * generators.index_select(-2, index)
+        carried = carried.index_copy(-2, index, moved)
+        blocks = torch.einsum("...kij,rki,ckj->...rc", blocks, self.place_pairs, self.place_pairs)
+        error = torch.diag_embed(errors * self.unrotated + self.noise_radius) + blocks
+        box_columns = (box.flatten(-2) + self.box_noise).unsqueeze(-2) * self.place
+        return new_center, carried, (error, box_columns)
