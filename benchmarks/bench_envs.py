@@ -9,7 +9,8 @@ Columns:
 
 Actions are uniform over the action box and episodes restart when they end (reset
 time included). Usage:
-``python benchmarks/bench_envs.py [--steps 3000] [--empty] [--tasks point_boxes ...]``.
+``python benchmarks/bench_envs.py [--steps 3000] [--empty] [--tasks point_boxes ...] [--robot wheeled]``
+(``--robot`` selects the ``diffdrive_nav`` robot).
 """
 from __future__ import annotations
 
@@ -20,6 +21,7 @@ import numpy as np
 import torch
 
 import envs
+from envs import diffdrive_nav
 from envs._registry import _module
 
 torch.set_num_threads(1)
@@ -31,8 +33,8 @@ def _actions(name: str, steps: int) -> np.ndarray:
     return rng.uniform(info.action_low.numpy(), info.action_high.numpy(), (steps, info.action_dim))
 
 
-def bench_dm_control(name: str, steps: int, empty: bool) -> float:
-    environment = _module(name).build_environment(seed=0, empty=empty)
+def bench_dm_control(name: str, steps: int, empty: bool, **options) -> float:
+    environment = _module(name).build_environment(seed=0, empty=empty, **options)
     environment.reset()
     actions = _actions(name, steps)
     start = time.perf_counter()
@@ -52,16 +54,16 @@ def _bench_torchrl_env(env, name: str, steps: int) -> float:
     return steps / (time.perf_counter() - start)
 
 
-def bench_torchrl(name: str, steps: int, empty: bool) -> float:
-    return _bench_torchrl_env(envs.make(name, seed=0, empty=empty), name, steps)
+def bench_torchrl(name: str, steps: int, empty: bool, **options) -> float:
+    return _bench_torchrl_env(envs.make(name, seed=0, empty=empty, **options), name, steps)
 
 
-def bench_reference(name: str, steps: int, empty: bool) -> float:
+def bench_reference(name: str, steps: int, empty: bool, **options) -> float:
     from torchrl.envs import Compose, DMControlWrapper, DoubleToFloat, RenameTransform, TransformedEnv
 
     keys = ["center", "generators", "mask"]
     env = TransformedEnv(
-        DMControlWrapper(_module(name).build_environment(seed=0, empty=empty)),
+        DMControlWrapper(_module(name).build_environment(seed=0, empty=empty, **options)),
         Compose(
             DoubleToFloat(),
             RenameTransform([f"obstacles_{k}" for k in keys], [("obstacles", k) for k in keys]),
@@ -75,13 +77,18 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=3000)
     parser.add_argument("--empty", action="store_true", help="benchmark the obstacle-free variants")
     parser.add_argument("--tasks", nargs="+", choices=envs.TASKS, default=envs.TASKS, help="tasks (default: all)")
+    parser.add_argument("--robot", choices=diffdrive_nav.ROBOTS, help="the diffdrive_nav robot (default: kinematic)")
     args = parser.parse_args()
+    if args.robot is not None and set(args.tasks) != {"diffdrive_nav"}:
+        parser.error("--robot needs --tasks diffdrive_nav")
+    options = {} if args.robot is None else {"robot": args.robot}
     print(f"steps/s, one thread, {args.steps} steps per entry{' (empty variants)' if args.empty else ''}")
     print(f"{'task':<16}{'dm_control':>12}{'torchrl':>12}{'reference':>12}")
     for name in args.tasks:
-        for bench in (bench_dm_control, bench_torchrl, bench_reference):
-            bench(name, 200, args.empty)  # warm-up
-        row = [bench(name, args.steps, args.empty) for bench in (bench_dm_control, bench_torchrl, bench_reference)]
+        benches = (bench_dm_control, bench_torchrl, bench_reference)
+        for bench in benches:
+            bench(name, 200, args.empty, **options)  # warm-up
+        row = [bench(name, args.steps, args.empty, **options) for bench in benches]
         print(f"{name:<16}" + "".join(f"{value:>12.0f}" for value in row))
 
 

@@ -12,12 +12,15 @@ def model_xml(
     floor_half_extent: float,
     overview_height: float,
     floor_z: float = 0.0,
+    floor_contact: bool = False,
 ) -> str:
     """A complete MJCF model: defaults, floor, cameras, robot and obstacle bodies.
 
     Collision filtering: robot geoms have ``contype=1, conaffinity=0``, obstacle geoms
     ``contype=0, conaffinity=1`` and everything else ``0, 0``, so the only pairs
-    MuJoCo ever tests are robot-obstacle pairs. Visual geoms sit in group 2,
+    MuJoCo ever tests are robot-obstacle pairs; with ``floor_contact`` the floor also has
+    ``conaffinity=2``, so robot parts with ``contype=2`` (wheels) roll on it without touching
+    obstacles or counting as the robot's collision geometry. Visual geoms sit in group 2,
     obstacles in group ``OBSTACLE_GROUP`` (the only group the lidar sees).
 
     Args:
@@ -25,9 +28,10 @@ def model_xml(
         timestep: physics time step (s).
         robot: XML of the robot body (inside ``<worldbody>``) followed by nothing else.
         obstacles: XML of the obstacle mocap bodies.
-        floor_half_extent: half size of the (visual only) floor plane.
+        floor_half_extent: half size of the drawn floor plane.
         overview_height: height of the top-down ``overview`` camera.
         floor_z: height of the floor plane.
+        floor_contact: whether geoms with ``contype=2`` collide with the floor.
 
     Returns:
         The XML string; append actuators with :func:`with_actuators`.
@@ -57,7 +61,7 @@ def model_xml(
     </default>
   </default>
   <worldbody>
-    <geom name="floor" class="visual" type="plane" pos="0 0 {floor_z:.6g}"
+    <geom name="floor" class="visual" type="plane" pos="0 0 {floor_z:.6g}"{' conaffinity="2"' if floor_contact else ''}
           size="{floor_half_extent:.6g} {floor_half_extent:.6g} 0.1" material="grid"/>
     <camera name="overview" pos="0 0 {overview_height:.6g}" xyaxes="1 0 0 0 1 0" fovy="60"/>
     {robot}

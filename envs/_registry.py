@@ -48,7 +48,8 @@ def make(name: str, seed: int | None = 0, empty: bool = False, layout: int | Non
             (``episode_steps``, the time limit in control steps, and
             ``terminate_on_collision`` for every task; ``max_acceleration`` for
             ``point_boxes``, ``diffdrive_nav``, ``quadrotor_nav`` and ``hexarotor_wind``;
-            ``max_turn_acceleration`` for ``diffdrive_nav``) go to the
+            ``max_turn_acceleration`` and ``robot``, ``"kinematic"`` or ``"wheeled"``, for
+            ``diffdrive_nav``) go to the
             task; anything else (``from_pixels``, ``pixels_only``, ``camera_id``,
             ``render_kwargs``, ``device``) to :class:`~torchrl.envs.DMControlWrapper`.
 

@@ -36,6 +36,16 @@ def place_robot(env, position: np.ndarray, velocity: np.ndarray | None = None, h
     physics.forward()
 
 
+def manual_step(env, action) -> np.ndarray:
+    """What ``control.Environment.step`` does, without its episode bookkeeping; returns the next state."""
+    raw = env._env
+    task, physics = raw.task, raw.physics
+    task.before_step(action, physics)
+    physics.step(int(round(raw.control_timestep() / physics.timestep())))
+    task.after_step(physics)
+    return task.state(physics)
+
+
 def robot_obstacle_distance(env, position: np.ndarray, geom: int) -> float:
     """Signed distance between the robot's collision geom, centred at ``position``, and ``geom``."""
     physics = env.physics

@@ -4,7 +4,7 @@ import pytest
 import torch
 
 import envs
-from envs_support import place_robot, zonotope_contains
+from envs_support import manual_step, place_robot, zonotope_contains
 
 
 
@@ -96,16 +96,6 @@ def test_no_collision_in_the_empty_variant(name):
     assert td["next", "speed"].max() > 0.1 * info.action_high.abs().max()  # it did move around
 
 
-def _manual_step(env, action):
-    """What ``control.Environment.step`` does, without its episode bookkeeping."""
-    raw = env._env
-    task, physics = raw.task, raw.physics
-    task.before_step(action, physics)
-    physics.step(int(round(raw.control_timestep() / physics.timestep())))
-    task.after_step(physics)
-    return task.state(physics)
-
-
 def _snapshot(env):
     """The physics state and the controller memory (``hexarotor_wind``'s integral offset)."""
     return env.physics.get_state().copy(), getattr(env.task, "offset", None)
@@ -135,11 +125,11 @@ def test_noise_stays_in_the_noise_zonotope(name):
         action = rng.uniform(info.action_low.numpy(), info.action_high.numpy())
         snapshot = _snapshot(env)
         task.noise_scale = 1.0
-        noisy = _manual_step(env, action)
+        noisy = manual_step(env, action)
         after = _snapshot(env)
         _restore(env, snapshot)
         task.noise_scale = 0.0
-        clean = _manual_step(env, action)
+        clean = manual_step(env, action)
         _restore(env, after)
         z, *_ = np.linalg.lstsq(G, noisy - clean - c, rcond=None)
         np.testing.assert_allclose(G @ z + c, noisy - clean, atol=1e-9)
@@ -347,7 +337,7 @@ def test_servos_without_acceleration_limit_are_linear(name, axes, command, optio
     for _ in range(30):
         state = env.task.state(env.physics)
         action = rng.uniform(-command, command, axes)
-        after = _manual_step(env, action)
+        after = manual_step(env, action)
         for axis in range(axes):
             rows.append([state[axes + axis], action[axis]])
             targets.append([after[axis] - state[axis], after[axes + axis]])

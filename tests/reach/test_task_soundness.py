@@ -20,6 +20,10 @@ CASES = {
     # fitted in the body frame (heading (cos θ, sin θ) out of the regressors): measured 40 of 40
     # claimed, final radius 0.011 m median, 0.028 m at most (world frame: 35 of 40, 0.12 m)
     "diffdrive_nav:capped:body": ({}, 2000, 7, 0.9, 0.05),
+    # the wheeled robot (robot="wheeled": driven wheels on the floor, per-wheel speed ramps), body frame, held to
+    # the kinematic robot's bar. Measured: 0 of 40 claimed (coverage lost at step 2-3; position radius 0.04 m
+    # after 3 steps, 1.5 m after 5, median), although all 280 true states lie inside their (unclaimed) sets
+    "diffdrive_nav:wheeled:body": ({"robot": "wheeled"}, 2000, 7, 0.9, 0.05),
     # measured: 40 of 40 claimed, final radius 0.40 m median, 0.76 m at most
     "quadrotor_nav:capped": ({}, 500, 11, 0.9, 1.0),
     "point_boxes:capped": ({}, 500, 4, 0.9, 0.1),
@@ -34,9 +38,17 @@ def _uniform(info, *shape):
     return low + (high - low) * torch.rand(*shape, low.shape[-1], dtype=torch.float64)
 
 
+# cases whose claimed share falls short for a known reason (their claimed sets must still be sound): the wheel
+# ramps clip along (u_v - v) ± (track / 2)(u_ω - ω), which none of the local model's hinge candidates x_i ± r u_j
+# follows; fitted to noiseless ideal per-wheel ramps its one-step ω radius is 0.42 rad/s, to ideal ramps of v and
+# ω each 0.023 rad/s
+KNOWN_GAPS = {"diffdrive_nav:wheeled:body": "per-wheel speed ramps: kinks outside the local model's hinge candidates"}
+
+
 @pytest.mark.parametrize("name", list(CASES))
 def test_sampled_true_trajectories_stay_in_the_reachable_sets(name):
     options, steps, horizon, min_claimed, max_radius = CASES[name]
+    gap = KNOWN_GAPS.get(name)
     body = name.endswith(":body")
     name = name.split(":")[0]
     torch.manual_seed(0)
@@ -69,6 +81,8 @@ def test_sampled_true_trajectories_stay_in_the_reachable_sets(name):
     sets, claimed = reach.reach_covered(Zonotope.from_point(torch.stack(starts)), torch.stack(plans))  # [40, H]
     inside = sets.contains(torch.stack(visited))[claimed]
     assert inside.all(), f"{int((~inside).sum())} of {inside.numel()} true states outside their sets"
+    if gap and claimed.float().mean() < min_claimed:
+        pytest.xfail(f"{gap}: {int(claimed.sum())} of 40 plans claimed")
     assert claimed.float().mean() >= min_claimed, f"{int(claimed.sum())} of 40 plans claimed"
     radius = sets.generators[claimed, -1][:, list(info.position_dims)].abs().sum(-1).amax()
     assert radius < max_radius
