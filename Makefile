@@ -23,7 +23,7 @@ demo: $(STAMP)
 	$(PY) -m recipes.demo
 
 demo-reach: $(STAMP)
-	$(PY) -m torchrl_brsl.demo
+	$(PY) -m recipes.reach_demo
 
 # one worker per core (tests are grouped by file, which keeps a module's fixtures on one worker)
 test: $(STAMP)

@@ -6,7 +6,7 @@ import torch
 import envs
 from torchrl_brsl.reach import DataDrivenReach
 from torchrl_brsl.safety import BRSLSafetyLayer, Failsafe, GradientAdjuster
-from torchrl_brsl.sets import Zonotope
+from torchrl_brsl.sets import Obstacles, Zonotope
 
 
 #: task options used for both the offline data and the episodes. ``point_boxes`` without its
@@ -50,14 +50,19 @@ def make_layer(task: str, **kwargs) -> BRSLSafetyLayer:
                            **options)
 
 
+def obstacles_of(centers, generators, mask) -> Obstacles:
+    """The :class:`Obstacles` of loose ``center [B, K, d]``, ``generators [B, K, d, p]`` and ``mask [B, K]``."""
+    return Obstacles(centers, generators, mask, batch_size=centers.shape[:-2])
+
+
 def assert_closed_form_matches_autograd(checker, x0, plan, centers, generators, mask, iterations: int) -> None:
     """The gradient adjuster's closed-form iteration takes the same steps as autograd (to 1e-9)."""
-    assert not checker.evaluate(x0, plan, centers, generators, mask).safe.all()
+    assert not checker.evaluate(x0, plan, obstacles_of(centers, generators, mask)).safe.all()
     fast = GradientAdjuster(max_iterations=iterations, time_budget=None)
     slow = GradientAdjuster(max_iterations=iterations, time_budget=None)
     slow._analytic = False
-    a = fast(checker, x0, plan, centers, generators, mask)
-    b = slow(checker, x0, plan, centers, generators, mask)
+    a = fast(checker, x0, plan, obstacles_of(centers, generators, mask))
+    b = slow(checker, x0, plan, obstacles_of(centers, generators, mask))
     assert torch.equal(a.iterations, b.iterations) and a.iterations.max() > 0
     torch.testing.assert_close(a.plan, b.plan, rtol=0, atol=1e-9)
     for x, y in zip(a.evaluation, b.evaluation):

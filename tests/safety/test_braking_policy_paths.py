@@ -8,7 +8,7 @@ from torchrl_brsl.reach import DataDrivenReach, DoubleIntegrator
 from torchrl_brsl.safety import FacetQPAdjuster, Failsafe, PlanChecker
 from torchrl_brsl.safety.adjust import _centre_jacobian, _feedback_jacobian
 
-from safety_support import assert_closed_form_matches_autograd
+from safety_support import assert_closed_form_matches_autograd, obstacles_of
 
 N_PLAN, N_BRK = 5, 8
 D = torch.float64
@@ -63,10 +63,10 @@ def test_facet_qp_with_a_braking_policy_accepts_only_verified_plans(checker):
     generators = torch.tensor([[[[0.2, 0.0], [0.0, 0.35]]]] * 2, dtype=D)
     mask = torch.ones(2, 1, dtype=torch.bool)
     reference = torch.tensor([[[-1.0, 0.0]] * N_PLAN] * 2, dtype=D)  # decelerate: safe
-    assert checker.evaluate(x0, reference, centers, generators, mask).safe.all()
+    assert checker.evaluate(x0, reference, obstacles_of(centers, generators, mask)).safe.all()
     plan = torch.tensor([[[1.0, 0.0]] * N_PLAN] * 2, dtype=D)
-    assert not checker.evaluate(x0, plan, centers, generators, mask).safe.any()
-    result = FacetQPAdjuster()(checker, x0, plan, centers, generators, mask, reference=reference)
-    again = checker.evaluate(x0, result.plan, centers, generators, mask)
+    assert not checker.evaluate(x0, plan, obstacles_of(centers, generators, mask)).safe.any()
+    result = FacetQPAdjuster()(checker, x0, plan, obstacles_of(centers, generators, mask), reference=reference)
+    again = checker.evaluate(x0, result.plan, obstacles_of(centers, generators, mask))
     assert torch.equal(again.safe, result.evaluation.safe) and result.evaluation.safe.all()
     assert not torch.equal(result.plan, reference)  # it moved towards the proposal

@@ -9,7 +9,7 @@ from torchrl_brsl.reach import DataDrivenReach, DoubleIntegrator
 from torchrl_brsl.safety import FacetQPAdjuster, Failsafe, GradientAdjuster, PlanChecker
 from torchrl_brsl.safety.adjust import _centre_jacobian, _project_polytope
 
-from safety_support import assert_closed_form_matches_autograd
+from safety_support import assert_closed_form_matches_autograd, obstacles_of
 
 N_PLAN, N_BRK = 5, 8
 D = torch.float64
@@ -76,7 +76,7 @@ def test_fast_evaluation_matches_the_explicit_check(reach):
     checker = open_loop_checker(reach)
     for seed in range(4):
         x0, plan, centers, generators, mask = scene(seed=seed)
-        fast = checker.evaluate(x0, plan, centers, generators, mask)
+        fast = checker.evaluate(x0, plan, obstacles_of(centers, generators, mask))
         actions, c, values, stop, safe = reference_evaluation(checker, x0, plan, centers, generators, mask)
         torch.testing.assert_close(fast.actions, actions, rtol=0, atol=0)
         torch.testing.assert_close(fast.centers, c, rtol=0, atol=1e-9)
@@ -93,7 +93,7 @@ def test_non_finite_or_overflowing_offsets_count_as_colliding(reach):
     centers[0, 0, 0] = float("nan")
     centers[1, 0, 0] = 1e308  # finite, but the products overflow
     centers[1, 0, 1] = -1e308
-    evaluation = checker.evaluate(x0, plan, centers, generators, mask)
+    evaluation = checker.evaluate(x0, plan, obstacles_of(centers, generators, mask))
     assert torch.equal(evaluation.values[:, :, 0], torch.zeros(2, N_PLAN + N_BRK, dtype=D))
     assert not evaluation.safe.any()
 
@@ -101,10 +101,10 @@ def test_non_finite_or_overflowing_offsets_count_as_colliding(reach):
 def test_subset_checker_matches_the_full_batch(reach):
     checker = open_loop_checker(reach)
     x0, plan, centers, generators, mask = scene(n_envs=5)
-    full = checker.evaluate(x0, plan, centers, generators, mask)
+    full = checker.evaluate(x0, plan, obstacles_of(centers, generators, mask))
     idx = torch.tensor([1, 4])
-    sub = checker._subset(idx)
-    part = sub.evaluate(x0[idx], plan[idx], centers[idx], generators[idx], mask[idx])
+    sub = checker.subset(idx)
+    part = sub.evaluate(x0[idx], plan[idx], obstacles_of(centers[idx], generators[idx], mask[idx]))
     for a, b in zip(part, full):  # (rounding may differ with the batch size of a product)
         torch.testing.assert_close(a, b[idx], rtol=0, atol=1e-12)
     assert sub._checker is not checker._checker and checker._obstacle_generators.shape[0] == 5
@@ -140,11 +140,11 @@ def test_facet_qp_accepts_only_verified_plans_on_the_fast_path(reach):
     mask = torch.ones(2, 1, dtype=torch.bool)
     # reference: decelerate to a stop (safe), proposal: full throttle (unsafe)
     reference = torch.tensor([[[-1.0, 0.0]] * 5 + [[0.0, 0.0]] * 8] * 2, dtype=D)
-    assert checker.evaluate(x0, reference[:, :N_PLAN], centers, generators, mask).safe.all()
+    assert checker.evaluate(x0, reference[:, :N_PLAN], obstacles_of(centers, generators, mask)).safe.all()
     plan = torch.tensor([[[1.0, 0.0]] * N_PLAN] * 2, dtype=D)
-    assert not checker.evaluate(x0, plan, centers, generators, mask).safe.any()
-    result = FacetQPAdjuster()(checker, x0, plan, centers, generators, mask, reference=reference)
-    again = checker.evaluate(x0, result.plan, centers, generators, mask)
+    assert not checker.evaluate(x0, plan, obstacles_of(centers, generators, mask)).safe.any()
+    result = FacetQPAdjuster()(checker, x0, plan, obstacles_of(centers, generators, mask), reference=reference)
+    again = checker.evaluate(x0, result.plan, obstacles_of(centers, generators, mask))
     assert torch.equal(again.safe, result.evaluation.safe) and result.evaluation.safe.all()
     torch.testing.assert_close(again.values, result.evaluation.values, rtol=0, atol=0)
     assert torch.all(result.plan.abs() <= 1)
@@ -186,11 +186,11 @@ def test_layer_batch_with_some_envs_adjusted_matches_single_env_calls(reach, adj
     generators = torch.tensor([[[[0.2, 0.0], [0.0, 0.35]]]] * 3, dtype=D)
     mask = torch.ones(3, 1, dtype=torch.bool)
     steps = torch.full((3,), 5, dtype=torch.long)
-    batched = layer._safe_step(x0, plan, safe_plan, steps, centers, generators, mask, 0.0)
+    batched = layer.decision(x0, plan, safe_plan, steps, obstacles_of(centers, generators, mask), 0.0)
     assert batched[3]["intervened"].tolist() == [True, False, True]
     for i in range(3):
-        single = layer._safe_step(x0[i:i + 1], plan[i:i + 1], safe_plan[i:i + 1], steps[i:i + 1],
-                                  centers[i:i + 1], generators[i:i + 1], mask[i:i + 1], 0.0)
+        single = layer.decision(x0[i:i + 1], plan[i:i + 1], safe_plan[i:i + 1], steps[i:i + 1],
+                                obstacles_of(centers[i:i + 1], generators[i:i + 1], mask[i:i + 1]), 0.0)
         for k in range(3):
             torch.testing.assert_close(single[k][0], batched[k][i], rtol=0, atol=1e-9)
         for name, value in single[3].items():

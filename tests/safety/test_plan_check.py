@@ -6,6 +6,8 @@ from torchrl_brsl.reach import DataDrivenReach, DoubleIntegrator
 from torchrl_brsl.safety import FacetQPAdjuster, Failsafe, GradientAdjuster, PlanChecker
 from torchrl_brsl.sets import Zonotope
 
+from safety_support import obstacles_of
+
 N_PLAN, N_BRK = 5, 8
 
 
@@ -38,7 +40,8 @@ def test_local_model_verdict_matches_its_explicit_sets(local_reach, system, poli
     x0[:, 2:] = torch.rand(16, 2, generator=gen, dtype=torch.float64) * 0.6 - 0.3
     plan = system.sample_actions(16, N_PLAN, generator=gen) * 0.5
     c, g, mask, obstacle = box([0.25, -1.0], [0.6, 1.0])
-    evaluation = checker.evaluate(x0, plan, c.expand(16, 1, 2), g.expand(16, 1, 2, 2), mask.expand(16, 1))
+    evaluation = checker.evaluate(x0, plan, obstacles_of(c.expand(16, 1, 2), g.expand(16, 1, 2, 2),
+                                                         mask.expand(16, 1)))
     sets, covered = local_reach.reach_covered(Zonotope.from_point(x0), evaluation.actions)
     torch.testing.assert_close(sets.center, evaluation.centers)
     hit = intersects(sets.project([0, 1]), obstacle).any(-1)
@@ -83,7 +86,7 @@ def test_values_match_collision_checks_of_the_explicit_sets(reach, system):
     x0 = torch.tensor([[0.0, 0.0, 0.6, 0.0]], dtype=torch.float64)
     plan = torch.tensor([[[1.0, 0.0]] * N_PLAN], dtype=torch.float64)
     centers, generators, mask, obstacle = box([1.1, -0.35], [1.5, 0.35])
-    evaluation = checker.evaluate(x0, plan, centers, generators, mask)
+    evaluation = checker.evaluate(x0, plan, obstacles_of(centers, generators, mask))
     actions = evaluation.actions[0]
     sets = reach.reach(Zonotope.from_point(x0[0]), actions).project((0, 1))
     # the checker reduces the projected generators; its sets contain the explicit ones, so its
@@ -91,7 +94,8 @@ def test_values_match_collision_checks_of_the_explicit_sets(reach, system):
     explicit = collision_value(sets, obstacle, backend="closed_form")
     assert torch.all(evaluation.values[0, :, 0] <= explicit + 1e-9)
     unreduced = make_checker(reach, system, set_generators=sets.generators.shape[-1])
-    torch.testing.assert_close(unreduced.evaluate(x0, plan, centers, generators, mask).values[0, :, 0], explicit)
+    unreduced_values = unreduced.evaluate(x0, plan, obstacles_of(centers, generators, mask)).values
+    torch.testing.assert_close(unreduced_values[0, :, 0], explicit)
     assert not evaluation.safe.item()
 
 
@@ -100,17 +104,17 @@ def test_masked_obstacles_are_ignored(reach, system):
     x0 = torch.tensor([[0.0, 0.0, 0.0, 0.0]], dtype=torch.float64)
     plan = torch.zeros(1, N_PLAN, 2, dtype=torch.float64)
     centers, generators, mask, _ = box([-0.1, -0.1], [0.1, 0.1])  # on top of the robot
-    assert not checker.evaluate(x0, plan, centers, generators, mask).safe.item()
-    free = checker.evaluate(x0, plan, centers, generators, ~mask)
+    assert not checker.evaluate(x0, plan, obstacles_of(centers, generators, mask)).safe.item()
+    free = checker.evaluate(x0, plan, obstacles_of(centers, generators, ~mask))
     assert free.safe.item() and torch.isinf(free.values).all()
 
 
 def test_stop_condition_rejects_a_plan_that_cannot_stop(reach, system):
     checker = make_checker(reach, system, policy=False)  # hold zero acceleration: never brakes
     x0 = torch.tensor([[0.0, 0.0, 1.0, 0.0]], dtype=torch.float64)
-    evaluation = checker.evaluate(x0, torch.zeros(1, N_PLAN, 2, dtype=torch.float64),
-                                  torch.zeros(1, 0, 2, dtype=torch.float64),
-                                  torch.zeros(1, 0, 2, 2, dtype=torch.float64), torch.zeros(1, 0, dtype=torch.bool))
+    no_obstacles = obstacles_of(torch.zeros(1, 0, 2, dtype=torch.float64), torch.zeros(1, 0, 2, 2, dtype=torch.float64),
+                                torch.zeros(1, 0, dtype=torch.bool))
+    evaluation = checker.evaluate(x0, torch.zeros(1, N_PLAN, 2, dtype=torch.float64), no_obstacles)
     assert evaluation.stop_excess.item() > 0 and not evaluation.safe.item()
 
 
@@ -120,13 +124,13 @@ def test_adjusters_turn_an_unsafe_plan_into_a_verified_one(reach, system, adjust
     x0 = torch.tensor([[0.0, 0.0, 0.6, 0.0]], dtype=torch.float64)
     plan = torch.tensor([[[1.0, 0.0]] * N_PLAN], dtype=torch.float64)
     centers, generators, mask, _ = box([1.1, -0.35], [1.5, 0.35])
-    assert not checker.evaluate(x0, plan, centers, generators, mask).safe.item()
+    assert not checker.evaluate(x0, plan, obstacles_of(centers, generators, mask)).safe.item()
     # the reference for the facet-locked QP: brake at once (verified safe here)
     reference = checker.rollout(x0, torch.tensor([[[-1.0, 0.0]] * N_PLAN], dtype=torch.float64))[0]
-    assert checker.evaluate(x0, reference[:, :N_PLAN], centers, generators, mask).safe.item()
-    result = adjuster(checker, x0, plan, centers, generators, mask, reference=reference)
+    assert checker.evaluate(x0, reference[:, :N_PLAN], obstacles_of(centers, generators, mask)).safe.item()
+    result = adjuster(checker, x0, plan, obstacles_of(centers, generators, mask), reference=reference)
     assert result.evaluation.safe.item()
-    again = checker.evaluate(x0, result.plan, centers, generators, mask)
+    again = checker.evaluate(x0, result.plan, obstacles_of(centers, generators, mask))
     assert again.safe.item() and torch.all(again.values > 1)
     assert torch.all(result.plan >= -1) and torch.all(result.plan <= 1)
     # the adjusted plan still moves forward: it is not simply the braking reference
@@ -139,7 +143,7 @@ def test_facet_qp_needs_a_reference(reach, system):
     with pytest.raises(ValueError, match="reference"):
         FacetQPAdjuster()(checker, torch.zeros(1, 4, dtype=torch.float64), torch.zeros(1, N_PLAN, 2,
                                                                                        dtype=torch.float64),
-                          centers, generators, mask)
+                          obstacles_of(centers, generators, mask))
 
 
 def test_failsafe_validates_its_arguments():
@@ -165,8 +169,8 @@ def test_local_model_of_a_restricted_domain_claims_nothing_outside_it(system):
     far = torch.full((1, 1, 2), 50.0, dtype=torch.float64), torch.eye(2, dtype=torch.float64).view(1, 1, 2, 2)
     mask = torch.ones(1, 1, dtype=torch.bool)
     faster = torch.tensor([[[1.0, 0.0]] * N_PLAN], dtype=torch.float64)  # 5 x 0.1 s x 1 m/s^2 = 0.5 m/s
-    assert not checker.evaluate(x0, faster, *far, mask).covered.item()
-    assert checker.evaluate(x0, torch.zeros(1, N_PLAN, 2, dtype=torch.float64), *far, mask).safe.item()
+    assert not checker.evaluate(x0, faster, obstacles_of(*far, mask)).covered.item()
+    assert checker.evaluate(x0, torch.zeros(1, N_PLAN, 2, dtype=torch.float64), obstacles_of(*far, mask)).safe.item()
 
 
 def test_flat_plan_dependent_sets_against_empty_obstacle_slots_never_raise(system):
@@ -184,6 +188,7 @@ def test_flat_plan_dependent_sets_against_empty_obstacle_slots_never_raise(syste
     generators = torch.cat((g, torch.zeros(1, 1, 2, 2, dtype=torch.float64)), dim=1)
     masks = torch.tensor([[True, False]])
     x0 = torch.zeros(1, 4, dtype=torch.float64)
-    evaluation = checker.evaluate(x0, torch.zeros(1, N_PLAN, 2, dtype=torch.float64), centers, generators, masks)
+    evaluation = checker.evaluate(x0, torch.zeros(1, N_PLAN, 2, dtype=torch.float64),
+                                  obstacles_of(centers, generators, masks))
     assert evaluation.safe.item()
     assert torch.isinf(evaluation.values[..., 1]).all()

@@ -111,11 +111,13 @@ class LocalStep:
         distance = leaf_distance(cells, self.points, z_center.detach(), z_radius.detach(), self.weighted_points)
         index, errors, covered = leaf_bounds(cells, z_center, z_radius, phi_radius, feature_low, feature_high, distance)
         A, B, offset, theta, theta_p = self.leaf_rows[index + self.row_offset].split(self.widths, dim=-1)
-        # the relaxations relu(s) ∈ λ s + μ ± μ and s1 s2 ∈ λ1 s1 + λ2 s2 + κ ± ε fold into the leaf's model
+        # the relaxations relu(s) ∈ λ s + μ ± μ and s1 s2 ∈ λ1 s1 + λ2 s2 + κ ± ε fold into the leaf's
+        # model
         along = (torch.einsum("...kh,khd->...kd", theta * slope, self.hinge_directions)
                  + torch.einsum("...kqj,kqjd->...kd", theta_p.unsqueeze(-1) * factor_slope, self.product_directions))
         shift = constant - (factor_slope * self.product_knots).sum(-1)
-        offset = offset.squeeze(-1) + (theta * (offset_h - slope * cells.hinge_knots)).sum(-1) + (theta_p * shift).sum(-1)
+        offset = (offset.squeeze(-1) + (theta * (offset_h - slope * cells.hinge_knots)).sum(-1)
+                  + (theta_p * shift).sum(-1))
         errors = errors + (theta.abs() * offset_h).sum(-1) + (theta_p.abs() * product_error).sum(-1)
         A = A.index_add(-1, self.free, along[..., :len(self.inv_scale_free)])
         B = B + along[..., len(self.inv_scale_free):]

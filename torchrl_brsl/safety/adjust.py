@@ -8,6 +8,7 @@ import torch
 from torch import Tensor
 
 from torchrl_brsl.safety.plan_check import AffineRollout, PlanChecker, PlanEvaluation
+from torchrl_brsl.sets import Obstacles
 
 
 class Adjustment(NamedTuple):
@@ -46,7 +47,7 @@ class GradientAdjuster:
 
     Examples:
         >>> adjuster = GradientAdjuster(max_iterations=50, time_budget=0.1)
-        >>> result = adjuster(checker, x0, plan, centers, generators, mask)  # doctest: +SKIP
+        >>> result = adjuster(checker, x0, plan, obstacles)  # doctest: +SKIP
     """
 
     def __init__(self, max_iterations: int = 50, step_size: float = 0.1, target_margin: float = 0.05,
@@ -60,21 +61,18 @@ class GradientAdjuster:
         self.target_margin = float(target_margin)
         self.time_budget = time_budget
 
-    def __call__(self, checker: PlanChecker, x0: Tensor, plan: Tensor, obstacle_centers: Tensor,
-                 obstacle_generators: Tensor, obstacle_mask: Tensor, start: float | None = None,
-                 reference: Tensor | None = None) -> Adjustment:
+    def __call__(self, checker: PlanChecker, x0: Tensor, plan: Tensor, obstacles: Obstacles,
+                 start: float | None = None, reference: Tensor | None = None) -> Adjustment:
         """Adjust ``plan`` ``[B, P, m]``; ``reference`` (the previous safe plan) is not used."""
         start = time.perf_counter() if start is None else start
         affine = checker._affine_for(x0, plan) if self._analytic and not plan.requires_grad else None
         if affine is None:
             if self._analytic and not plan.requires_grad and _feedback_linearisable(checker, x0, plan):
                 with torch.no_grad():
-                    return self._feedback_steps(checker, x0, plan, obstacle_centers, obstacle_generators,
-                                                obstacle_mask, start)
-            return self._autograd(checker, x0, plan, obstacle_centers, obstacle_generators, obstacle_mask, start)
+                    return self._feedback_steps(checker, x0, plan, obstacles, start)
+            return self._autograd(checker, x0, plan, obstacles, start)
         with torch.no_grad():
-            return self._analytic_steps(checker, affine, x0, plan, obstacle_centers, obstacle_generators,
-                                        obstacle_mask, start)
+            return self._analytic_steps(checker, affine, x0, plan, obstacles, start)
 
     _analytic = True  # closed-form gradients when the centres are affine in the plan
 
@@ -86,15 +84,15 @@ class GradientAdjuster:
         moved = torch.minimum(torch.maximum(plan - self.step_size * scale * grad / norm, low), high)
         return torch.where(active.view(-1, 1, 1), moved, plan)
 
-    def _autograd(self, checker: PlanChecker, x0: Tensor, plan: Tensor, obstacle_centers: Tensor,
-                  obstacle_generators: Tensor, obstacle_mask: Tensor, start: float) -> Adjustment:
+    def _autograd(self, checker: PlanChecker, x0: Tensor, plan: Tensor, obstacles: Obstacles,
+                  start: float) -> Adjustment:
         """Gradients by autograd through the rollout (any braking policy)."""
         low, high = checker.action_low, checker.action_high
         scale = (high - low).clamp_min(1e-12)
         iterations = torch.zeros(plan.shape[0], dtype=torch.long, device=plan.device)
         for iteration in range(self.max_iterations + 1):
             plan = plan.detach().requires_grad_(True)
-            evaluation = checker.evaluate(x0, plan, obstacle_centers, obstacle_generators, obstacle_mask)
+            evaluation = checker.evaluate(x0, plan, obstacles)
             active = ~evaluation.safe
             out_of_time = self.time_budget is not None and time.perf_counter() - start > self.time_budget
             if iteration == self.max_iterations or out_of_time or not bool(active.any()):
@@ -110,8 +108,7 @@ class GradientAdjuster:
         return Adjustment(plan.detach(), evaluation, iterations)
 
     def _analytic_steps(self, checker: PlanChecker, affine: AffineRollout, x0: Tensor, plan: Tensor,
-                        obstacle_centers: Tensor, obstacle_generators: Tensor, obstacle_mask: Tensor,
-                        start: float) -> Adjustment:
+                        obstacles: Obstacles, start: float) -> Adjustment:
         """The same iteration with the gradient in closed form (open-loop braking).
 
         A value ``v = |w_f* . (c_o - p)|`` (facet ``f*`` attaining the gauge) has gradient
@@ -122,11 +119,10 @@ class GradientAdjuster:
         def jacobians(evaluation: PlanEvaluation) -> tuple[Tensor, Tensor]:
             return affine.position_jacobian, affine.stop_jacobian
 
-        return self._closed_form_steps(checker, jacobians, x0, plan, obstacle_centers, obstacle_generators,
-                                       obstacle_mask, start)
+        return self._closed_form_steps(checker, jacobians, x0, plan, obstacles, start)
 
-    def _feedback_steps(self, checker: PlanChecker, x0: Tensor, plan: Tensor, obstacle_centers: Tensor,
-                        obstacle_generators: Tensor, obstacle_mask: Tensor, start: float) -> Adjustment:
+    def _feedback_steps(self, checker: PlanChecker, x0: Tensor, plan: Tensor, obstacles: Obstacles,
+                        start: float) -> Adjustment:
         """The iteration of :meth:`_analytic_steps` for a braking *policy* (global model).
 
         The plan part of every centre is still affine in the plan; the braking tail is
@@ -138,11 +134,10 @@ class GradientAdjuster:
             jacobian = _feedback_jacobian(checker, evaluation.centers, plan.shape[1])  # [B, T, n, N]
             return jacobian[:, :, checker.position_dims], jacobian[:, -1, checker.stop_dims]
 
-        return self._closed_form_steps(checker, jacobians, x0, plan, obstacle_centers, obstacle_generators,
-                                       obstacle_mask, start)
+        return self._closed_form_steps(checker, jacobians, x0, plan, obstacles, start)
 
-    def _closed_form_steps(self, checker: PlanChecker, jacobians, x0: Tensor, plan: Tensor, obstacle_centers: Tensor,
-                           obstacle_generators: Tensor, obstacle_mask: Tensor, start: float) -> Adjustment:
+    def _closed_form_steps(self, checker: PlanChecker, jacobians, x0: Tensor, plan: Tensor, obstacles: Obstacles,
+                           start: float) -> Adjustment:
         """Projected steps with the gradient assembled from ``jacobians(evaluation)``: the
         positions' ``[(B,) T, d, N]`` and the final stop dims' ``[(B,) s, N]`` Jacobians in the plan."""
         low, high = checker.action_low, checker.action_high
@@ -150,8 +145,7 @@ class GradientAdjuster:
         iterations = torch.zeros(plan.shape[0], dtype=torch.long, device=plan.device)
         threshold = 1 + self.target_margin
         for iteration in range(self.max_iterations + 1):
-            evaluation, gauge = checker._evaluate(x0, plan, obstacle_centers, obstacle_generators, obstacle_mask,
-                                                  detail=True)
+            evaluation, gauge = checker.evaluate_with_gauge(x0, plan, obstacles)
             active = ~evaluation.safe
             out_of_time = self.time_budget is not None and time.perf_counter() - start > self.time_budget
             if iteration == self.max_iterations or out_of_time or not bool(active.any()):
@@ -160,7 +154,7 @@ class GradientAdjuster:
             values = evaluation.values  # masked: inf; non-finite: 0 (no gradient, as with autograd)
             picked = gauge.products.gather(-1, gauge.best.unsqueeze(-1)).squeeze(-1)  # [B, T, K]
             coef = torch.where((values < threshold) & (values > 0), picked.sign(), 0.0)
-            weights = _picked_weights(checker, gauge.best)  # [B, T, K, d]
+            weights = gauge.picked_weights()  # [B, T, K, d]
             per_step = (coef.unsqueeze(-2) @ weights).squeeze(-2)  # [B, T, d]
             grad = (per_step.flatten(1).unsqueeze(1) @ position_jacobian.flatten(-3, -2)).squeeze(1)  # [B, N]
             if checker.stop_dims:
@@ -203,24 +197,22 @@ class FacetQPAdjuster:
         self.target_margin = float(target_margin)
         self.backtracking = int(backtracking)
 
-    def __call__(self, checker: PlanChecker, x0: Tensor, plan: Tensor, obstacle_centers: Tensor,
-                 obstacle_generators: Tensor, obstacle_mask: Tensor, start: float | None = None,
-                 reference: Tensor | None = None) -> Adjustment:
+    def __call__(self, checker: PlanChecker, x0: Tensor, plan: Tensor, obstacles: Obstacles,
+                 start: float | None = None, reference: Tensor | None = None) -> Adjustment:
         if reference is None:
             raise ValueError("FacetQPAdjuster needs the `reference` plan (the previous safe plan)")
         with torch.no_grad():
-            return self._adjust(checker, x0, plan.detach(), obstacle_centers, obstacle_generators, obstacle_mask,
+            return self._adjust(checker, x0, plan.detach(), obstacles,
                                 reference.detach())
 
-    def _adjust(self, checker: PlanChecker, x0: Tensor, plan: Tensor, obstacle_centers: Tensor,
-                obstacle_generators: Tensor, obstacle_mask: Tensor, reference: Tensor) -> Adjustment:
+    def _adjust(self, checker: PlanChecker, x0: Tensor, plan: Tensor, obstacles: Obstacles,
+                reference: Tensor) -> Adjustment:
         n_envs, horizon = plan.shape[:2]
         reference = reference[:, :horizon]
         if reference.dtype != plan.dtype or reference.device != plan.device:
             reference = reference.to(plan)
         low, high = checker.action_low, checker.action_high
-        ref_eval, gauge = checker._evaluate(x0, reference, obstacle_centers, obstacle_generators, obstacle_mask,
-                                            detail=True)
+        ref_eval, gauge = checker.evaluate_with_gauge(x0, reference, obstacles)
         affine = checker._affine_for(x0, reference)
         if affine is None and _feedback_linearisable(checker, x0, reference):  # braking policy: linearised tail
             jacobian = _feedback_jacobian(checker, ref_eval.centers, horizon)  # [B, T, n, N]
@@ -235,10 +227,10 @@ class FacetQPAdjuster:
         # lock each (step, obstacle) pair to the facet attaining its value under the reference:
         # s w . (c_o - p_ref - J dz) >= level   <=>   (s w J) dz <= s w . Δ_ref - level
         picked = gauge.products.gather(-1, gauge.best.unsqueeze(-1)).squeeze(-1)  # [B, T, K]
-        weights = _picked_weights(checker, gauge.best) * picked.sign().unsqueeze(-1)  # [B, T, K, d]
+        weights = gauge.picked_weights() * picked.sign().unsqueeze(-1)  # [B, T, K, d]
         rows = (weights @ pos_jac).flatten(1, 2)  # [B, T K, N]
         value_ref = picked.abs()
-        bounds = torch.where(obstacle_mask.unsqueeze(-2), (value_ref - (1 + self.target_margin)).clamp_min(0),
+        bounds = torch.where(obstacles.mask.unsqueeze(-2), (value_ref - (1 + self.target_margin)).clamp_min(0),
                              float("inf")).flatten(1)  # masked pairs: never a constraint
         if checker.stop_dims:
             stop_ref = _stop_centres(checker, ref_eval.centers)
@@ -267,7 +259,7 @@ class FacetQPAdjuster:
         tries = torch.zeros(n_envs, dtype=torch.long, device=plan.device)
         for attempt in range(self.backtracking + 1):
             candidate = reference + step / (2 ** attempt) if attempt else reference + step
-            evaluation = checker.evaluate(x0, candidate, obstacle_centers, obstacle_generators, obstacle_mask)
+            evaluation = checker.evaluate(x0, candidate, obstacles)
             if attempt == 0 and bool(evaluation.safe.all()):  # the usual case: no merging needed
                 return Adjustment(candidate, evaluation, torch.ones_like(tries))
             take = evaluation.safe & ~accepted
@@ -381,13 +373,6 @@ def _project_polytope(A: Tensor, b: Tensor, target: Tensor, iterations: int) -> 
         momentum = torch.lerp(new, lam, (1 - t) / t_next)  # new + (t - 1) / t_next (new - lam)
         lam, t = new, t_next
     return target - (At @ lam).squeeze(-1)
-
-
-def _picked_weights(checker: PlanChecker, best: Tensor) -> Tensor:
-    """The facet weights ``w_f`` ``[B, T, K, d]`` at the facet indices ``best`` ``[B, T, K]``."""
-    weights = checker.facet_weights()  # [B, T, K, F, d]
-    index = best.unsqueeze(-1).unsqueeze(-1).expand(*best.shape, 1, weights.shape[-1])
-    return weights.gather(-2, index).squeeze(-2)
 
 
 def _stop_centres(checker: PlanChecker, centers: Tensor) -> Tensor:

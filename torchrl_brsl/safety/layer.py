@@ -14,11 +14,10 @@ from torchrl.envs.transforms import Transform
 
 from torchrl_brsl.reach import DataDrivenReach
 from torchrl_brsl.safety.adjust import FacetQPAdjuster, GradientAdjuster
+from torchrl_brsl.safety.decision import SafetyDecision
 from torchrl_brsl.safety.failsafe import Failsafe
 from torchrl_brsl.safety.plan_check import PlanChecker
-
-INPUT_LIMIT = 1e100
-"""Magnitude from which an entry of the state, proposal or a real obstacle counts as invalid (like NaN/inf)."""
+from torchrl_brsl.sets import Obstacles
 
 ADJUSTERS = {"gradient": GradientAdjuster, "facet_qp": FacetQPAdjuster}
 
@@ -192,7 +191,7 @@ class BRSLSafetyLayer(Transform):
         self._bounds = (action_low, action_high)
         self._checker: PlanChecker | None = None
         self._local_checker: PlanChecker | None = None
-        self._holds: dict = {}
+        self._decision: SafetyDecision | None = None
         if action_low is not None and action_high is not None:
             _ = self.checker, self.local_checker  # validate the settings now rather than at the first step
 
@@ -210,8 +209,6 @@ class BRSLSafetyLayer(Transform):
             dtype = self.reach.state_matrix.dtype
             self._checker = self._plan_checker(self.reach, torch.as_tensor(low, dtype=dtype),
                                                torch.as_tensor(high, dtype=dtype))
-            # a proposal counts as out of bounds beyond rounding (the bounds may be float32)
-            self._bound_tolerance = 1e-6 * (self._checker.action_high - self._checker.action_low).clamp_min(1.0)
         return self._checker
 
     @property
@@ -226,6 +223,13 @@ class BRSLSafetyLayer(Transform):
             if reason:
                 warnings.warn(f"`local_reach` will never verify a plan: {reason}", UserWarning, stacklevel=2)
         return self._local_checker
+
+    @property
+    def decision(self) -> SafetyDecision:
+        """The safety decision of one step (:class:`~torchrl_brsl.safety.decision.SafetyDecision`) on these checkers."""
+        if self._decision is None:
+            self._decision = SafetyDecision(self.checker, self.failsafe, self.adjuster, self.local_checker)
+        return self._decision
 
     def local_model_unusable(self) -> str:
         """Why ``local_reach`` can never verify a plan, or ``""`` when it can.
@@ -246,10 +250,11 @@ class BRSLSafetyLayer(Transform):
         rest = torch.zeros(1, n, dtype=dtype).clamp(low[:n], high[:n])
         brake = torch.minimum(torch.maximum(self.failsafe.actions(rest), local.action_low), local.action_high)
         brake = brake.to(local.action_dtype).to(dtype).unsqueeze(1)
-        no_obstacles = (rest.new_zeros(1, 0, len(local.position_dims)),
-                        rest.new_zeros(1, 0, len(local.position_dims), 1), torch.zeros(1, 0, dtype=torch.bool))
+        d = len(local.position_dims)
+        no_obstacles = Obstacles(rest.new_zeros(1, 0, d), rest.new_zeros(1, 0, d, 1),
+                                 torch.zeros(1, 0, dtype=torch.bool), batch_size=[1])
         with torch.no_grad():
-            evaluation = local.evaluate(rest, brake, *no_obstacles)
+            evaluation = local.evaluate(rest, brake, no_obstacles)
             if bool(evaluation.covered.all()):
                 return ""
             if local.plan_dependent:
@@ -382,7 +387,7 @@ class BRSLSafetyLayer(Transform):
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
         start = time.perf_counter()
         batch = tensordict.batch_size
-        state, action, proposal, centers, generators, mask = self._read_inputs(tensordict)
+        state, action, proposal, obstacles = self._read_inputs(tensordict)
         safe_plan = tensordict.get(self.safe_plan_key, None)
         safe_steps = tensordict.get(self.safe_steps_key, None)
         if safe_plan is None:
@@ -401,12 +406,10 @@ class BRSLSafetyLayer(Transform):
         action_dtype = self._action_dtype() if action is None else action.dtype
         proposal = proposal.to(action_dtype)
         n_envs = batch.numel()
-        out = self._safe_step(
+        executed, new_safe_plan, new_safe_steps, diagnostics = self.decision(
             state.reshape(n_envs, state.shape[-1]), proposal.reshape(n_envs, *proposal.shape[-2:]),
             safe_plan.reshape(n_envs, *safe_plan.shape[-2:]), safe_steps.reshape(n_envs),
-            centers.reshape(n_envs, *centers.shape[-2:]), generators.reshape(n_envs, *generators.shape[-3:]),
-            mask.reshape(n_envs, mask.shape[-1]), start)
-        executed, new_safe_plan, new_safe_steps, diagnostics = out
+            obstacles.reshape(n_envs), start)
         executed = executed.reshape(*batch, -1).to(action_dtype)
         # not executed as proposed: unsafe, clamped into the bounds, or invalid (NaN never equals)
         differs = (executed != proposal[..., 0, :]).any(-1).reshape(-1)
@@ -427,8 +430,7 @@ class BRSLSafetyLayer(Transform):
         A wrong structure (shape, dtype, a missing entry) raises a ``ValueError`` naming the key
         and both shapes; wrong *values* (NaN, inf, out of bounds) are handled by the safety
         logic (a verified action, ``invalid_input`` flagged). Returns ``(state [*B, n],
-        action [*B, m] (or None beside a plan), plan [*B, P, m] or None, center [*B, K, d], generators [*B, K, d, p],
-        mask [*B, K])``.
+        action [*B, m] (or None beside a plan), plan [*B, P, m] or None, obstacles [*B])``.
         """
         batch = tuple(tensordict.batch_size)
         n, m, d = self.reach.state_dim, self.reach.action_dim, len(self.checker.position_dims)
@@ -454,7 +456,7 @@ class BRSLSafetyLayer(Transform):
         _check_structure(keys["mask"], mask, batch, (k,), reference, dtype="bool")
         if generators.shape[-1] == 0:  # point obstacles: one zero generator keeps the facet table defined
             generators = generators.new_zeros(*generators.shape[:-1], 1)
-        return state, action, plan, center, generators, mask
+        return state, action, plan, Obstacles(center, generators, mask, batch_size=batch)
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         next_tensordict.set(self.safe_plan_key, tensordict.get(self.safe_plan_key))
@@ -464,172 +466,6 @@ class BRSLSafetyLayer(Transform):
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         raise RuntimeError(f"{type(self).__name__} acts inside an environment's step: append it to a TransformedEnv.")
-
-    # ----------------------------------------------------------------- the safety logic
-    def _safe_step(self, state: Tensor, proposal: Tensor, safe_plan: Tensor, safe_steps: Tensor,
-                   obstacle_centers: Tensor, obstacle_generators: Tensor, obstacle_mask: Tensor, start: float):
-        """One batched safety decision over ``B`` envs (flattened batch).
-
-        ``safe_steps`` ``[B]`` counts the leading actions of ``safe_plan`` that were verified.
-        Returns ``(executed [B, m], next safe plan [B, T, m], next safe steps [B],
-        diagnostics {name: [B]})``.
-        """
-        checker = self.checker
-        dtype = self.reach.state_matrix.dtype
-        n_envs = state.shape[0]
-        obstacle_centers = obstacle_centers.to(dtype)
-        obstacle_generators = obstacle_generators.to(dtype)
-        if proposal.shape[-2] > self.n_plan:
-            raise ValueError(f"`{_name(self.plan_key)}` has {proposal.shape[-2]} steps, more than n_plan={self.n_plan}")
-        x0 = state.to(dtype)
-        plan = proposal.to(dtype)
-        # one cheap test for the usual case: a sum of squares below INPUT_LIMIT² means every
-        # magnitude is below INPUT_LIMIT (NaN and inf fail it; one large entry sends the batch
-        # to the per-env test below)
-        flat = torch.cat([t.reshape(-1) for t in (x0, plan, obstacle_centers, obstacle_generators, safe_plan)])
-        corrupt = None
-        if float(torch.dot(flat, flat)) < INPUT_LIMIT ** 2:
-            valid = None
-        else:  # per env; an obstacle slot counts only when its mask is set
-            # a corrupted stored plan (not written by this layer) is dropped: the robot holds
-            corrupt = ~(safe_plan.abs() < INPUT_LIMIT).flatten(1).all(-1)
-            safe_plan = torch.where(corrupt.view(-1, 1, 1), self._hold(safe_plan).expand_as(safe_plan), safe_plan)
-            safe_steps = torch.where(corrupt, torch.zeros_like(safe_steps), safe_steps)
-            slot_ok = ((obstacle_centers.abs() < INPUT_LIMIT).all(-1)
-                       & (obstacle_generators.abs() < INPUT_LIMIT).flatten(-2).all(-1))  # [B, K]
-            valid = ((x0.abs() < INPUT_LIMIT).all(-1) & (plan.abs() < INPUT_LIMIT).flatten(1).all(-1)
-                     & (slot_ok | ~obstacle_mask).all(-1))
-            x0 = torch.where(valid.unsqueeze(-1), x0, torch.zeros_like(x0))
-            plan = torch.where(valid.view(-1, 1, 1), plan, torch.zeros_like(plan))
-            # unusable slots and the obstacles of invalid envs become empty slots (zeros, masked),
-            # so that the batched check stays finite; invalid envs' verdicts are never used
-            keep = slot_ok & valid.unsqueeze(-1)
-            obstacle_centers = torch.where(keep.unsqueeze(-1), obstacle_centers, 0.0)
-            obstacle_generators = torch.where(keep.unsqueeze(-1).unsqueeze(-1), obstacle_generators, 0.0)
-            obstacle_mask = obstacle_mask & keep
-        # a proposal beyond the action bounds is flagged and clamped; the clamped plan is verified
-        outside = ((plan < checker.action_low - self._bound_tolerance)
-                   | (plan > checker.action_high + self._bound_tolerance)).flatten(1).any(-1)
-        plan = torch.clamp(plan, checker.action_low, checker.action_high)
-
-        with torch.no_grad():
-            evaluation = checker.evaluate(x0, plan, obstacle_centers, obstacle_generators, obstacle_mask)
-        proposal_safe = _and_valid(evaluation.safe, valid)
-        out_of_data = _and_valid(~evaluation.covered, valid)
-        accepted = proposal_safe
-        actions, values = evaluation.actions, evaluation.values
-        iterations = torch.zeros(n_envs, dtype=torch.long, device=state.device)
-        todo = _and_valid(~proposal_safe, valid)
-        if self.adjuster is not None and bool(todo.any()):
-            reference = safe_plan.to(dtype)
-            if bool(todo.all()):  # e.g. a single env: no gathering and scattering
-                adjusted = self.adjuster(checker, x0, plan, obstacle_centers, obstacle_generators, obstacle_mask,
-                                         start=start, reference=reference)
-                accepted = adjusted.evaluation.safe
-                actions, values = adjusted.evaluation.actions, adjusted.evaluation.values
-                iterations = adjusted.iterations
-            else:
-                idx = todo.nonzero().squeeze(-1)
-                adjusted = self.adjuster(checker._subset(idx), x0[idx], plan[idx], obstacle_centers[idx],
-                                         obstacle_generators[idx], obstacle_mask[idx], start=start,
-                                         reference=reference[idx])
-                accepted = accepted.clone()
-                accepted[idx] = adjusted.evaluation.safe
-                actions = actions.clone()
-                values = values.clone()
-                actions[idx] = adjusted.evaluation.actions
-                values[idx] = adjusted.evaluation.values
-                iterations[idx] = adjusted.iterations
-
-        local = torch.zeros_like(accepted)
-        retry = _and_valid(~accepted, valid)
-        if self.local_reach is not None and bool(retry.any()):
-            idx = retry.nonzero().squeeze(-1)
-            sub = self._local_subset(idx, obstacle_generators, retry)
-            candidate = plan[idx].clamp(sub.action_low, sub.action_high)
-            with torch.no_grad():
-                evaluation = sub.evaluate(x0[idx], candidate, obstacle_centers[idx], obstacle_generators[idx],
-                                          obstacle_mask[idx])
-            if self.adjuster is not None and not bool(evaluation.safe.all()):
-                evaluation = self.adjuster(sub, x0[idx], candidate, obstacle_centers[idx], obstacle_generators[idx],
-                                           obstacle_mask[idx], start=start,
-                                           reference=safe_plan[idx].to(dtype)).evaluation
-            accepted, actions, values = accepted.clone(), actions.clone(), values.clone()
-            accepted[idx] = evaluation.safe
-            local[idx] = evaluation.safe
-            actions[idx] = torch.where(evaluation.safe.view(-1, 1, 1), evaluation.actions, actions[idx])
-            values[idx] = torch.where(evaluation.safe.view(-1, 1, 1), evaluation.values, values[idx])
-
-        # No plan accepted: brake from the measured state if that verifies, else keep the previous
-        # safe plan. Re-verifying the braking manoeuvre every step is a closed-loop hold: where a
-        # stopped robot does not stay stopped by itself (noise on a double integrator), holding
-        # open loop would drift past the verified horizon.
-        usable = accepted
-        for is_local in (False, True) if self.local_reach is not None else (False,):
-            braking = _and_valid(~usable, valid)
-            if not bool(braking.any()):
-                break
-            idx = braking.nonzero().squeeze(-1)
-            if is_local:
-                sub = self._local_subset(idx, obstacle_generators, braking)
-            else:
-                sub = checker if bool(braking.all()) else checker._subset(idx)
-            brake = self.failsafe.actions(x0[idx]).clamp(sub.action_low, sub.action_high)
-            brake = brake.to(sub.action_dtype).to(dtype).unsqueeze(1)
-            with torch.no_grad():
-                braked = sub.evaluate(x0[idx], brake, obstacle_centers[idx], obstacle_generators[idx],
-                                      obstacle_mask[idx])
-            usable, actions = usable.clone(), actions.clone()
-            usable[idx] = braked.safe
-            if is_local:
-                local[idx] = braked.safe
-            actions[idx] = torch.where(braked.safe.view(-1, 1, 1), braked.actions, actions[idx])
-        # Beyond the verified part of the safe plan only the failsafe remains: apply the braking
-        # policy to the measured state (a closed-loop hold, paper Assumption 1) rather than an
-        # open-loop action, unless the state itself is unusable.
-        chosen = torch.where(usable.view(-1, 1, 1), actions, safe_plan.to(dtype))
-        executed = chosen[:, 0]
-        exhausted = ~usable & (safe_steps <= 0)
-        if bool(exhausted.any()):
-            feedback = self.failsafe.actions(x0).clamp(checker.action_low, checker.action_high)
-            if valid is not None:
-                feedback = torch.where(valid.unsqueeze(-1), feedback, self._hold(feedback).expand_as(feedback))
-            executed = torch.where(exhausted.unsqueeze(-1), feedback.to(checker.action_dtype).to(dtype), executed)
-        next_safe_plan = torch.cat((chosen[:, 1:], self._hold(chosen).expand(n_envs, 1, -1)), dim=1)
-        next_steps = torch.where(usable, torch.full_like(safe_steps, self.horizon - 1), (safe_steps - 1).clamp_min(0))
-        diagnostics = {
-            "intervened": ~proposal_safe,
-            "failsafe": ~accepted,
-            "local": local,
-            "unverified_hold": exhausted,
-            "invalid_input": ((outside if valid is None else outside | ~valid)
-                              | (False if corrupt is None else corrupt)),
-            "out_of_data": out_of_data,
-            "min_collision_value": (values.flatten(1).amin(-1) if values.shape[-1] and values.shape[-2]
-                                    else values.new_full((n_envs,), float("inf"))),
-            "adjust_iterations": iterations,
-        }
-        return executed, next_safe_plan, next_steps, diagnostics
-
-    def _local_subset(self, idx: Tensor, obstacle_generators: Tensor, selected: Tensor) -> PlanChecker:
-        """The local checker for the envs ``idx`` (its facet table cached for the whole batch)."""
-        local = self.local_checker
-        if not local.plan_dependent:
-            local.checker(obstacle_generators)
-        return local if bool(selected.all()) else local._subset(idx)
-
-    def _hold(self, like: Tensor) -> Tensor:
-        """The failsafe's hold action in ``like``'s dtype and device (cached)."""
-        key = (like.dtype, like.device)
-        if key not in self._holds:
-            self._holds[key] = self.failsafe.hold_action.to(like)
-        return self._holds[key]
-
-
-def _and_valid(mask: Tensor, valid: Tensor | None) -> Tensor:
-    """``mask`` restricted to the envs with valid inputs (``valid`` None: all are valid)."""
-    return mask if valid is None else valid & mask
-
 
 def _name(key: NestedKey) -> str:
     """A TensorDict key as written in messages: ``"obstacles/center"``."""

@@ -11,7 +11,7 @@ from torch import Tensor
 from torchrl_brsl.collision import ZonotopeCollisionChecker
 from torchrl_brsl.reach import DataDrivenReach, stack_steps
 from torchrl_brsl.safety.failsafe import Failsafe
-from torchrl_brsl.sets import Zonotope, reduce_girard
+from torchrl_brsl.sets import Obstacles, Zonotope, reduce_girard
 
 
 DEFAULT_STOP_SLACK = 0.15
@@ -183,7 +183,7 @@ class PlanChecker:
             self._obstacle_generators = obstacle_generators.clone()
         return self._checker
 
-    def _subset(self, index: Tensor) -> PlanChecker:
+    def subset(self, index: Tensor) -> PlanChecker:
         """A checker for the envs ``index`` of the cached obstacle batch, sharing every other cache.
 
         Avoids rebuilding the facet table when only some envs of a batch are checked again.
@@ -324,8 +324,7 @@ class PlanChecker:
         hold = torch.minimum(torch.maximum(self.failsafe.hold_action.to(like), self.action_low), self.action_high)
         return hold.to(self.action_dtype).to(like.dtype)
 
-    def evaluate(self, x0: Tensor, plan: Tensor, obstacle_centers: Tensor, obstacle_generators: Tensor,
-                 obstacle_mask: Tensor) -> PlanEvaluation:
+    def evaluate(self, x0: Tensor, plan: Tensor, obstacles: Obstacles) -> PlanEvaluation:
         """Verify a batch of plans from measured states.
 
         A pair's value is the closed-form gauge ``max_f |w_f . (c_obstacle - c_set)|`` of the
@@ -335,19 +334,18 @@ class PlanChecker:
         Args:
             x0: ``[B, n]``.
             plan: ``[B, P, m]`` (``P <= T``); the rest of the horizon is the braking tail.
-            obstacle_centers: ``[B, K, d]``.
-            obstacle_generators: ``[B, K, d, p]``.
-            obstacle_mask: ``[B, K]`` bool, ``True`` for real obstacles.
+            obstacles: batch ``[B]``, in the model's dtype.
         """
-        return self._evaluate(x0, plan, obstacle_centers, obstacle_generators, obstacle_mask)[0]
+        return self.evaluate_with_gauge(x0, plan, obstacles, detail=False)[0]
 
-    def _evaluate(self, x0: Tensor, plan: Tensor, obstacle_centers: Tensor, obstacle_generators: Tensor,
-                  obstacle_mask: Tensor, detail: bool = False) -> tuple[PlanEvaluation, Gauge | None]:
-        """:meth:`evaluate`, optionally with the signed facet products and the facet attaining each value."""
+    def evaluate_with_gauge(self, x0: Tensor, plan: Tensor, obstacles: Obstacles,
+                            detail: bool = True) -> tuple[PlanEvaluation, Gauge | None]:
+        """:meth:`evaluate`, with the signed facet products, the facet attaining each value and the
+        facet weights (``detail``): what the adjusters linearise."""
         if self.plan_dependent:
             actions, sets, covered = self.rollout_sets(x0, plan)
             centers = sets.center
-            self._plan_checker(sets, obstacle_generators)
+            self._plan_checker(sets, obstacles.generators)
             stop_room = (self.stop_slack.expand(centers.shape[0], -1) if self.stop_slack is not None else
                          self.stop_tolerance - _take(sets.generators[:, -1].abs().sum(-1), self._stop_index))
             if self.reach.bounded_domain:  # every step starts inside the model's domain
@@ -357,11 +355,11 @@ class PlanChecker:
                 covered = covered & self.reach._boxes_in_domain(starts, radius, actions)
         else:
             actions, centers = self.rollout(x0, plan)
-            self.checker(obstacle_generators)
+            self.checker(obstacles.generators)
             covered = torch.ones(centers.shape[0], dtype=torch.bool, device=centers.device)
             stop_room = self._stop_room.to(centers).expand(centers.shape[0], -1)
         positions = _take(centers, self._position_index)  # [B, T, d]
-        offsets = obstacle_centers.unsqueeze(-3) - positions.unsqueeze(-2)  # [B, T, K, d]
+        offsets = obstacles.center.unsqueeze(-3) - positions.unsqueeze(-2)  # [B, T, K, d]
         parts = offsets.unsqueeze(-1).unbind(-2)  # d x [B, T, K, 1]
         products = self._columns[0] * parts[0]  # [B, T, K, F]
         for column, part in zip(self._columns[1:], parts[1:]):
@@ -370,7 +368,7 @@ class PlanChecker:
             values, best = products.abs().max(-1)
         else:
             values, best = products.abs().amax(-1), None
-        values = torch.where(obstacle_mask.unsqueeze(-2), torch.nan_to_num(values, nan=0.0, posinf=0.0, neginf=0.0),
+        values = torch.where(obstacles.mask.unsqueeze(-2), torch.nan_to_num(values, nan=0.0, posinf=0.0, neginf=0.0),
                              float("inf"))
         if self.stop_dims:
             stop_excess = (_take(centers.select(1, -1), self._stop_index).abs() - stop_room).amax(-1)
@@ -386,7 +384,7 @@ class PlanChecker:
             inside = self.reach._boxes_in_domain(starts, self._domain_radius.to(centers), actions)
             safe, covered = safe & inside, covered & inside
         evaluation = PlanEvaluation(actions, centers, values, stop_excess, safe, stop_room, covered)
-        return evaluation, (Gauge(products, best) if detail else None)
+        return evaluation, (Gauge(products, best, self._checker.table.weights) if detail else None)
 
     def _plan_checker(self, sets: Zonotope, obstacle_generators: Tensor) -> None:
         """Facet table of plan-dependent sets ``[B, T]`` against the obstacles ``[B, K, d, p]``.
@@ -404,10 +402,6 @@ class PlanChecker:
                                                  deduplicate=False)
         self._columns = tuple(w.contiguous() for w in self._checker.table.weights.unbind(-1))
         self._obstacle_generators = None  # the cached table no longer matches any obstacle batch
-
-    def facet_weights(self) -> Tensor:
-        """The cached facet table's ``weights`` ``[B, T, K, F, d]`` (see :meth:`checker`)."""
-        return self._checker.table.weights
 
 
 class AffineRollout(NamedTuple):
@@ -434,11 +428,19 @@ class AffineRollout(NamedTuple):
 
 
 class Gauge(NamedTuple):
-    """Internals of a check: ``products`` ``[B, T, K, F]`` are ``w_f . (c_obstacle - c_set)`` and
-    ``best`` ``[B, T, K]`` the facet attaining each value (where ``max_f |products|`` is)."""
+    """Internals of a check: ``products`` ``[B, T, K, F]`` are ``w_f . (c_obstacle - c_set)``,
+    ``best`` ``[B, T, K]`` the facet attaining each value (where ``max_f |products|`` is) and
+    ``weights`` ``[B, T, K, F, d]`` (or broadcastable) the facets' ``w_f``."""
 
     products: Tensor
     best: Tensor
+    weights: Tensor
+
+    def picked_weights(self) -> Tensor:
+        """The weights ``w_f`` ``[B, T, K, d]`` of the facets attaining the values."""
+        weights = self.weights.expand(*self.best.shape, *self.weights.shape[-2:])
+        index = self.best.unsqueeze(-1).unsqueeze(-1).expand(*self.best.shape, 1, weights.shape[-1])
+        return weights.gather(-2, index).squeeze(-2)
 
 
 def _index(dims: Sequence[int]) -> slice | list[int]:

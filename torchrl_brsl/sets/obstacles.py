@@ -34,10 +34,61 @@ import torch
 from tensordict import TensorDict
 from torch import Tensor
 
+from torchrl_brsl.sets._tensorclass import documented_tensorclass
 from torchrl_brsl.sets.reduction import pad_generators
 from torchrl_brsl.sets.zonotope import Zonotope
 
-__all__ = ["inflate_box", "inflate_disc", "inflate_polygon", "obstacle_batch", "regular_polygon_generators"]
+__all__ = ["Obstacles", "inflate_box", "inflate_disc", "inflate_polygon", "obstacle_batch",
+           "regular_polygon_generators"]
+
+
+@documented_tensorclass
+class Obstacles:
+    """A padded batch of ``K`` obstacle zonotopes per env: what the safety layer checks sets against.
+
+    A tensorclass of batch ``[...]`` (the envs): it indexes like a tensor (``obstacles[idx]``
+    selects envs) and moves across devices. Empty slots have ``mask=False``; their centre and
+    generators are never used.
+
+    Args:
+        center: ``[..., K, d]``.
+        generators: ``[..., K, d, p]``.
+        mask: ``[..., K]`` bool, ``True`` for real obstacles.
+
+    Examples:
+        >>> obstacles = Obstacles(**obstacle_batch([inflate_disc(torch.zeros(2), 0.3, 0.1)], capacity=4))
+        >>> obstacles.batch_size, obstacles.n_obstacles, obstacles.dim
+        (torch.Size([]), 4, 2)
+    """
+
+    center: Tensor
+    generators: Tensor
+    mask: Tensor
+
+    def __post_init__(self):
+        c, g, m = self.center, self.generators, self.mask
+        if c.ndim < 2 or g.shape[:-1] != c.shape or m.shape != c.shape[:-1]:
+            raise ValueError(f"obstacles need `center` [..., K, d], `generators` [..., K, d, p] and `mask` [..., K]; "
+                             f"got {tuple(c.shape)}, {tuple(g.shape)} and {tuple(m.shape)}")
+        if m.dtype is not torch.bool:
+            raise ValueError(f"the obstacles' `mask` must be bool (True for real obstacles), got {m.dtype}")
+        self.batch_size = c.shape[:-2]
+
+    @property
+    def n_obstacles(self) -> int:
+        """``K``, the number of slots."""
+        return self.center.shape[-2]
+
+    @property
+    def dim(self) -> int:
+        """``d``, the dimension of the obstacle space."""
+        return self.center.shape[-1]
+
+    def to_dtype(self, dtype: torch.dtype) -> Obstacles:
+        """The centres and generators in ``dtype`` (the mask stays bool)."""
+        if self.center.dtype == dtype and self.generators.dtype == dtype:
+            return self
+        return Obstacles(self.center.to(dtype), self.generators.to(dtype), self.mask, batch_size=self.batch_size)
 
 
 def regular_polygon_generators(n: int, inradius: float, dtype: torch.dtype = torch.float64) -> Tensor:

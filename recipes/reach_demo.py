@@ -6,7 +6,7 @@ checked against it (exact closed form and the differentiable LP agree), adjusted
 paper's projected gradient until every reachable set, braking tail included, is
 collision-free, and both are drawn with 20,000 sampled true trajectories.
 
-Usage: ``python -m torchrl_brsl.demo [--out runs/demo] [--seed 0]``
+Usage: ``python -m recipes.reach_demo [--out runs/demo] [--seed 0]``
 """
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ import torch
 from torchrl_brsl.collision import collision_value
 from torchrl_brsl.reach import DataDrivenReach, DoubleIntegrator
 from torchrl_brsl.safety import Failsafe, GradientAdjuster, PlanChecker
-from torchrl_brsl.sets import Zonotope
+from torchrl_brsl.sets import Obstacles, Zonotope
 
 N_PLAN, N_BRK = 5, 8
 
@@ -45,9 +45,10 @@ def main(argv=None) -> None:
     checker = PlanChecker(reach, Failsafe(torch.zeros(2, dtype=torch.float64), N_BRK, system.braking), horizon,
                           stop_dims=(2, 3), stop_slack=0.1, action_low=system.action_low,
                           action_high=system.action_high)
-    obstacles = (obstacle.center.view(1, 1, 2), obstacle.generators.view(1, 1, 2, 2), torch.ones(1, 1, dtype=torch.bool))
-    before = checker.evaluate(x0[None], plan[None], *obstacles)
-    adjusted = GradientAdjuster(max_iterations=200, time_budget=None)(checker, x0[None], plan[None], *obstacles)
+    obstacles = Obstacles(obstacle.center.view(1, 1, 2), obstacle.generators.view(1, 1, 2, 2),
+                          torch.ones(1, 1, dtype=torch.bool), batch_size=[1])
+    before = checker.evaluate(x0[None], plan[None], obstacles)
+    adjusted = GradientAdjuster(max_iterations=200, time_budget=None)(checker, x0[None], plan[None], obstacles)
 
     sets = {}
     for label, evaluation, proposal in (("proposed", before, plan[None]),

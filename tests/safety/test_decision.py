@@ -1,0 +1,62 @@
+"""The safety decision of one step on plain tensors (no TensorDict, no env)."""
+import pytest
+import torch
+
+from torchrl_brsl.reach import DataDrivenReach, DoubleIntegrator
+from torchrl_brsl.safety import FacetQPAdjuster, Failsafe, PlanChecker, SafetyDecision
+from torchrl_brsl.sets import Zonotope
+
+from safety_support import obstacles_of
+
+N_PLAN, N_BRK = 4, 8
+D = torch.float64
+
+
+@pytest.fixture(scope="module")
+def decide():
+    system = DoubleIntegrator(drag=0.05, max_speed=3.0, data_speed=1.5)
+    x, xp, u = system.offline_data(2000, torch.Generator().manual_seed(0))
+    reach = DataDrivenReach.fit(x, xp, u, system.noise, translation_invariant_dims=(0, 1), max_generators=24)
+    failsafe = Failsafe(torch.zeros(2, dtype=D), N_BRK, system.braking)
+    checker = PlanChecker(reach, failsafe, N_PLAN + N_BRK, stop_dims=(2, 3), stop_slack=0.1,
+                          action_low=system.action_low, action_high=system.action_high)
+    return SafetyDecision(checker, failsafe, FacetQPAdjuster())
+
+
+def _scene(n_envs: int):
+    """Robots moving at 0.6 m/s towards a wall 0.5 m ahead, proposing full thrust; a held safe plan."""
+    x0 = torch.tensor([[0.0, 0.0, 0.6, 0.0]], dtype=D).repeat(n_envs, 1)
+    proposal = torch.tensor([[1.0, 0.0]], dtype=D).repeat(n_envs, N_PLAN, 1)
+    wall = Zonotope.from_interval(torch.tensor([0.5, -1.0], dtype=D), torch.tensor([0.7, 1.0], dtype=D))
+    obstacles = obstacles_of(wall.center.expand(n_envs, 1, 2), wall.generators.expand(n_envs, 1, 2, 2),
+                             torch.ones(n_envs, 1, dtype=torch.bool))
+    safe_plan = torch.zeros(n_envs, N_PLAN + N_BRK, 2, dtype=D)
+    return x0, proposal, safe_plan, torch.zeros(n_envs, dtype=torch.long), obstacles
+
+
+def test_executed_action_starts_a_plan_the_checker_verifies(decide):
+    x0, proposal, safe_plan, steps, obstacles = _scene(3)
+    assert not decide.checker.evaluate(x0, proposal, obstacles).safe.any()
+    step = decide(x0, proposal, safe_plan, steps, obstacles)
+    assert step.diagnostics["intervened"].all()
+    usable = step.safe_steps > 0
+    assert usable.all(), "braking from 0.6 m/s, 0.5 m before the wall, verifies"
+    chosen = torch.cat((step.executed.unsqueeze(1), step.safe_plan[:, :-1]), dim=1)  # the verified sequence
+    assert decide.checker.evaluate(x0, chosen, obstacles).safe.all()
+    assert (step.executed[:, 0] < 1.0).all()
+
+
+def test_an_invalid_env_keeps_its_safe_plan_and_leaves_the_others_alone(decide):
+    x0, proposal, safe_plan, steps, obstacles = _scene(2)
+    safe_plan[:, :, 0] = -0.5
+    steps[:] = 5
+    alone = decide(x0[:1], proposal[:1], safe_plan[:1], steps[:1], obstacles[:1])
+    x0[1, 2] = float("nan")
+    both = decide(x0, proposal, safe_plan, steps, obstacles)
+    assert both.diagnostics["invalid_input"].tolist() == [False, True]
+    assert both.diagnostics["failsafe"][1] and not both.diagnostics["unverified_hold"][1]
+    torch.testing.assert_close(both.executed[1], safe_plan[1, 0])
+    assert both.safe_steps[1] == 4
+    torch.testing.assert_close(both.executed[0], alone.executed[0], rtol=0, atol=1e-9)
+    for name, value in alone.diagnostics.items():
+        assert torch.equal(both.diagnostics[name][0], value[0]), name
