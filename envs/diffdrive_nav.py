@@ -237,6 +237,9 @@ _CHASSIS_VISUALS = """
       <geom class="visual" type="box" size="0.03 0.01 0.005" pos="0.06 0 0.055" rgba=".9 .3 .2 1"/>
       <site name="base"/>
       <camera name="follow" mode="trackcom" pos="0 -1.5 2" xyaxes="1 0 0 0 0.8 0.6"/>"""
+_PLANAR_JOINTS = """<joint name="x" type="slide" axis="1 0 0"/>
+      <joint name="y" type="slide" axis="0 1 0"/>
+      <joint name="yaw" type="hinge" axis="0 0 1"/>"""
 _WHEEL_VISUAL = f'type="cylinder" size="{WHEEL_RADIUS} 0.009" euler="1.5708 0 0" rgba="0 0 0 1"'
 
 
@@ -254,9 +257,7 @@ def _model(empty: bool, max_acceleration: float | None, max_turn_acceleration: f
     """The kinematic robot: chassis velocity servos on joints x, y, yaw."""
     robot = f"""
     <body name="robot" pos="0 0 {_ROBOT_Z}">
-      <joint name="x" type="slide" axis="1 0 0"/>
-      <joint name="y" type="slide" axis="0 1 0"/>
-      <joint name="yaw" type="hinge" axis="0 0 1"/>
+      {_PLANAR_JOINTS}
       <inertial pos="0 0 0" mass="{_MASS}" diaginertia="{_YAW_INERTIA} {_YAW_INERTIA} {_YAW_INERTIA}"/>
       <geom name="robot" class="robot" type="sphere" size="{DiffDriveNav.robot_radius}"/>
       <geom class="visual" {_WHEEL_VISUAL} pos="0 {TRACK / 2:.6g} {WHEEL_RADIUS - _ROBOT_Z:.6g}"/>
@@ -295,9 +296,7 @@ def _wheeled_model(empty: bool) -> str:
     caster_z, inertia = _CASTER_RADIUS - _ROBOT_Z, f"{_YAW_INERTIA} {_YAW_INERTIA} {_YAW_INERTIA}"
     robot = f"""
     <body name="robot" pos="0 0 {_ROBOT_Z}">
-      <joint name="x" type="slide" axis="1 0 0"/>
-      <joint name="y" type="slide" axis="0 1 0"/>
-      <joint name="yaw" type="hinge" axis="0 0 1"/>
+      {_PLANAR_JOINTS}
       <joint name="z" type="slide" axis="0 0 1"/>
       <inertial pos="0 0 0" mass="{_MASS - 2 * _WHEEL_MASS:.6g}" diaginertia="{inertia}"/>
       <geom name="robot" class="robot" type="sphere" size="{DiffDriveNav.robot_radius}"/>{_CHASSIS_VISUALS}
