@@ -4,6 +4,7 @@ import torch
 from torchrl_brsl.collision import collision_value, intersects
 from torchrl_brsl.reach import DataDrivenReach, DoubleIntegrator
 from torchrl_brsl.safety import FacetQPAdjuster, Failsafe, GradientAdjuster, PlanChecker
+from torchrl_brsl.safety.adjust import _first_safe
 from torchrl_brsl.sets import Zonotope
 
 from safety_support import obstacles_of
@@ -192,3 +193,31 @@ def test_flat_plan_dependent_sets_against_empty_obstacle_slots_never_raise(syste
                                   obstacles_of(centers, generators, masks))
     assert evaluation.safe.item()
     assert torch.isinf(evaluation.values[..., 1]).all()
+
+
+def test_batched_backtracking_takes_the_first_safe_halving(local_reach, system):
+    """A local model's candidates ``reference + step / 2^a`` are checked in one batch; each env takes
+    the first safe one, as checking them in turn would (the reference's evaluation when none is)."""
+    checker = make_checker(local_reach, system, stop_tolerance=None, stop_slack=0.1)
+    gen = torch.Generator().manual_seed(5)
+    n_envs = 12
+    x0 = torch.zeros(n_envs, 4, dtype=torch.float64)
+    x0[:, 2] = torch.rand(n_envs, generator=gen, dtype=torch.float64) * 0.4
+    reference = torch.zeros(n_envs, N_PLAN, 2, dtype=torch.float64)
+    step = torch.zeros_like(reference)
+    step[..., 0] = torch.rand(n_envs, 1, generator=gen, dtype=torch.float64) * 2  # towards the wall, some too hard
+    c, g, mask, _ = box([0.35, -1.0], [0.6, 1.0])
+    obstacles = obstacles_of(c.expand(n_envs, 1, 2), g.expand(n_envs, 1, 2, 2), mask.expand(n_envs, 1))
+    ref_eval = checker.evaluate(x0, reference, obstacles)
+    result = _first_safe(checker, x0, reference, step, obstacles, ref_eval, backtracking=4)
+    firsts = []
+    for i in range(n_envs):
+        safe = [bool(checker.evaluate(x0[i:i + 1], reference[i:i + 1] + step[i:i + 1] / 2 ** a,
+                                      obstacles[i:i + 1]).safe) for a in range(5)]
+        first = next((a for a, ok in enumerate(safe) if ok), None)
+        firsts.append(first)
+        expected = reference[i] if first is None else reference[i] + step[i] / 2 ** first
+        torch.testing.assert_close(result.plan[i], expected)
+        assert bool(result.evaluation.safe[i]) == (first is not None)
+        assert int(result.iterations[i]) == (5 if first is None else first + 1)
+    assert len(set(firsts)) >= 3, f"the scene should mix outcomes, got first safe halvings {firsts}"

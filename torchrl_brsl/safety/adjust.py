@@ -239,12 +239,15 @@ class FacetQPAdjuster:
             rows = torch.cat((rows, stop_jac, -stop_jac), dim=1)
             bounds = torch.cat((bounds, room - stop_ref, room + stop_ref), dim=1)
         bounds = bounds.clamp_min(0)
-        # rows that no step inside the action box can make active are dropped (zeroed where only
-        # other envs of the batch need them, so that each env's result does not depend on the batch)
+        # rows that no step inside the action box can make active are dropped: each env's own rows
+        # first, the batch padded to the most any env keeps with zero rows (never active), so that an
+        # env's result does not depend on the batch and the dual's size on the union of their rows
         span, box_rows, upper, lower = self._box(checker, horizon, plan)
         needed = rows.abs() @ span > bounds
-        kept = needed.any(0)
-        rows, bounds = (rows * needed.unsqueeze(-1))[:, kept], bounds[:, kept]
+        order = torch.argsort((~needed).to(torch.uint8), dim=-1, stable=True)[:, :int(needed.sum(-1).max())]
+        keep = needed.gather(1, order)
+        rows = rows.gather(1, order.unsqueeze(-1).expand(-1, -1, rows.shape[-1])) * keep.unsqueeze(-1)
+        bounds = torch.where(keep, bounds.gather(1, order), 0.0)
         ref_flat = reference.flatten(1)
         A = torch.cat((rows, box_rows.expand(n_envs, -1, -1)), dim=1)
         b = torch.cat((bounds, (upper - ref_flat).clamp_min(0), (ref_flat - lower).clamp_min(0)), dim=1)
@@ -254,6 +257,8 @@ class FacetQPAdjuster:
         excess = (A @ step.unsqueeze(-1)).squeeze(-1)
         scale = torch.where(excess > b, b / excess.clamp_min(1e-12), 1.0).amin(-1).clamp(0, 1)
         step = (step * scale.unsqueeze(-1)).view_as(reference)
+        if checker.plan_dependent:  # a check costs a rollout of sets: every halving in one batch
+            return _first_safe(checker, x0, reference, step, obstacles, ref_eval, self.backtracking)
         best_plan, best_eval = reference, ref_eval
         accepted = torch.zeros(n_envs, dtype=torch.bool, device=plan.device)
         tries = torch.zeros(n_envs, dtype=torch.long, device=plan.device)
@@ -284,6 +289,28 @@ class FacetQPAdjuster:
             cached = ((high - low).repeat(horizon), torch.cat((eye, -eye)), high.repeat(horizon), low.repeat(horizon))
             checker._affine[key] = cached
         return cached
+
+
+def _first_safe(checker: PlanChecker, x0: Tensor, reference: Tensor, step: Tensor, obstacles: Obstacles,
+                ref_eval: PlanEvaluation, backtracking: int) -> Adjustment:
+    """The first safe of ``reference + step / 2^a``, ``a = 0 .. backtracking``, per env, checked in one batch.
+
+    The same choice as checking them in turn (the reference's evaluation where none is safe);
+    ``iterations`` counts the candidates up to the one taken.
+    """
+    n_envs, attempts = reference.shape[0], backtracking + 1
+    halving = 2.0 ** -torch.arange(attempts, dtype=step.dtype, device=step.device)
+    candidates = (reference + halving.view(-1, 1, 1, 1) * step).flatten(0, 1)  # [A B, P, m]
+    batch = obstacles.expand(attempts, n_envs).reshape(attempts * n_envs)
+    evaluation = checker.evaluate(x0.repeat(attempts, 1), candidates, batch)
+    safe = evaluation.safe.view(attempts, n_envs)
+    first = torch.where(safe.any(0), safe.to(torch.uint8).argmax(0), attempts)  # [B]; attempts: none
+    pick = (first.clamp_max(attempts - 1) * n_envs + torch.arange(n_envs, device=first.device))
+    found = safe.any(0)
+    chosen = PlanEvaluation(*(torch.where(found.view(-1, *[1] * (new.ndim - 1)), new[pick], old)
+                              for new, old in zip(evaluation, ref_eval)))
+    plan = torch.where(found.view(-1, 1, 1), candidates[pick], reference)
+    return Adjustment(plan, chosen, (first + 1).clamp_max(attempts))
 
 
 def _feedback_linearisable(checker: PlanChecker, x0: Tensor, plan: Tensor) -> bool:
