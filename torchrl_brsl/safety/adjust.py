@@ -65,6 +65,8 @@ class GradientAdjuster:
                  start: float | None = None, reference: Tensor | None = None) -> Adjustment:
         """Adjust ``plan`` ``[B, P, m]``; ``reference`` (the previous safe plan) is not used."""
         start = time.perf_counter() if start is None else start
+        if checker.uses_lp(obstacles):  # the LP's values have no facets: gradients by autograd through it
+            return self._autograd(checker, x0, plan, obstacles, start)
         affine = checker._affine_for(x0, plan) if self._analytic and not plan.requires_grad else None
         if affine is None:
             if self._analytic and not plan.requires_grad and _feedback_linearisable(checker, x0, plan):
@@ -180,7 +182,8 @@ class FacetQPAdjuster:
     and the action box, by accelerated projected gradient on the dual (batched, fixed
     iteration count). The result is pulled back towards the reference until the exact
     check (:meth:`PlanChecker.evaluate`) accepts it; if even that fails the plan is reported
-    unsafe and the layer keeps its safe plan.
+    unsafe and the layer keeps its safe plan. Obstacles checked by the LP (polytopes, spaces
+    beyond 3-D) have no facets to lock: there it runs :class:`GradientAdjuster` instead.
 
     Args:
         iterations: dual gradient iterations.
@@ -201,6 +204,8 @@ class FacetQPAdjuster:
                  start: float | None = None, reference: Tensor | None = None) -> Adjustment:
         if reference is None:
             raise ValueError("FacetQPAdjuster needs the `reference` plan (the previous safe plan)")
+        if checker.uses_lp(obstacles):  # no facets to lock: projected gradient through the LP
+            return GradientAdjuster(target_margin=self.target_margin)(checker, x0, plan, obstacles, start=start)
         with torch.no_grad():
             return self._adjust(checker, x0, plan.detach(), obstacles,
                                 reference.detach())

@@ -217,23 +217,24 @@ def _sanitize(x0: Tensor, plan: Tensor, obstacles: Obstacles, safe_plan: Tensor,
     Returns:
         ``(x0, plan, obstacles, safe_plan, safe_steps, valid, corrupt)``.
     """
-    flat = torch.cat([t.reshape(-1) for t in (x0, plan, obstacles.center, obstacles.generators, safe_plan)])
+    parts = [obstacles.center, obstacles.generators]  # [B, K, ...] each
+    if obstacles.constraint_matrix is not None:
+        parts += [obstacles.constraint_matrix, obstacles.constraint_offset]
+    flat = torch.cat([t.reshape(-1) for t in (x0, plan, *parts, safe_plan)])
     if float(torch.dot(flat, flat)) < INPUT_LIMIT ** 2:
         return x0, plan, obstacles, safe_plan, safe_steps, None, None
     corrupt = ~(safe_plan.abs() < INPUT_LIMIT).flatten(1).all(-1)
     safe_plan = torch.where(corrupt.view(-1, 1, 1), hold.expand_as(safe_plan), safe_plan)
     safe_steps = torch.where(corrupt, torch.zeros_like(safe_steps), safe_steps)
-    slot_ok = ((obstacles.center.abs() < INPUT_LIMIT).all(-1)
-               & (obstacles.generators.abs() < INPUT_LIMIT).flatten(-2).all(-1))  # [B, K]
+    slot_ok = torch.stack([(part.abs() < INPUT_LIMIT).flatten(2).all(-1) for part in parts]).all(0)  # [B, K]
     valid = ((x0.abs() < INPUT_LIMIT).all(-1) & (plan.abs() < INPUT_LIMIT).flatten(1).all(-1)
              & (slot_ok | ~obstacles.mask).all(-1))
     x0 = torch.where(valid.unsqueeze(-1), x0, torch.zeros_like(x0))
     plan = torch.where(valid.view(-1, 1, 1), plan, torch.zeros_like(plan))
     # so that the batched check stays finite; invalid envs' verdicts are never used
     keep = slot_ok & valid.unsqueeze(-1)
-    obstacles = Obstacles(torch.where(keep.unsqueeze(-1), obstacles.center, 0.0),
-                          torch.where(keep.unsqueeze(-1).unsqueeze(-1), obstacles.generators, 0.0),
-                          obstacles.mask & keep, batch_size=obstacles.batch_size)
+    cleaned = [torch.where(keep.view(*keep.shape, *[1] * (part.ndim - 2)), part, 0.0) for part in parts]
+    obstacles = Obstacles(cleaned[0], cleaned[1], obstacles.mask & keep, *cleaned[2:], batch_size=obstacles.batch_size)
     return x0, plan, obstacles, safe_plan, safe_steps, valid, corrupt
 
 

@@ -114,6 +114,11 @@ class BRSLSafetyLayer(Transform):
             same state and action dims.
         set_generators: generator width of the projected reachable sets.
         margin: sets count as colliding when ``v* <= 1 + margin``.
+        collision: ``"auto"`` (the closed form for zonotope obstacles in 1-3 D, else the
+            differentiable LP), ``"exact"`` or ``"lp"`` (:data:`~torchrl_brsl.safety.plan_check.COLLISION_CHECKS`).
+            Polytope obstacles come as constrained zonotopes: the ``obstacles`` entry then also
+            holds ``constraint_matrix [..., K, c, p]`` and ``constraint_offset [..., K, c]``
+            (:func:`~torchrl_brsl.sets.obstacle_batch` writes them).
         state_key, obstacles_key, plan_key, action_key, safe_action_key, safe_plan_key,
         diagnostics_key, reward_key: TensorDict keys.
 
@@ -131,7 +136,7 @@ class BRSLSafetyLayer(Transform):
                  stop_slack: float | Sequence[float] | None = None, action_low: Tensor | None = None,
                  action_high: Tensor | None = None, position_dims: Sequence[int] | None = None,
                  adjuster: str | Callable | None = "gradient", penalty: float = 0.0,
-                 set_generators: int | None = None, margin: float = 1e-6,
+                 set_generators: int | None = None, margin: float = 1e-6, collision: str = "auto",
                  state_key: NestedKey = "state", obstacles_key: NestedKey = "obstacles", plan_key: NestedKey = "plan",
                  action_key: NestedKey = "action", safe_action_key: NestedKey = "safe_action",
                  safe_plan_key: NestedKey = "safe_plan", safe_steps_key: NestedKey = "safe_plan_steps",
@@ -184,6 +189,7 @@ class BRSLSafetyLayer(Transform):
         self.penalty = float(penalty)
         self.set_generators = set_generators
         self.margin = float(margin)
+        self.collision = collision
         self.state_key, self.obstacles_key, self.plan_key = state_key, obstacles_key, plan_key
         self.action_key, self.safe_action_key, self.safe_plan_key = action_key, safe_action_key, safe_plan_key
         self.safe_steps_key = safe_steps_key
@@ -281,7 +287,7 @@ class BRSLSafetyLayer(Transform):
                            stop_tolerance=self.stop_tolerance, stop_slack=self.stop_slack, action_low=low,
                            action_high=high,
                            position_dims=self.position_dims, set_generators=self.set_generators,
-                           margin=self.margin, action_dtype=self._action_dtype())
+                           margin=self.margin, action_dtype=self._action_dtype(), collision=self.collision)
 
     def _hold_plan(self, batch: torch.Size, like: Tensor) -> Tensor:
         hold = self.failsafe.hold_action.to(device=like.device, dtype=torch.float64)
@@ -454,9 +460,27 @@ class BRSLSafetyLayer(Transform):
         reference = f"K={k} obstacles, as `{_name(keys['center'])}` {tuple(center.shape)}"
         _check_structure(keys["generators"], generators, batch, (k, d, None), reference)
         _check_structure(keys["mask"], mask, batch, (k,), reference, dtype="bool")
+        constraints = self._read_constraints(tensordict, batch, generators.shape)
         if generators.shape[-1] == 0:  # point obstacles: one zero generator keeps the facet table defined
             generators = generators.new_zeros(*generators.shape[:-1], 1)
-        return state, action, plan, Obstacles(center, generators, mask, batch_size=batch)
+            if constraints[0] is not None:
+                constraints = (constraints[0].new_zeros(*constraints[0].shape[:-1], 1), constraints[1])
+        return state, action, plan, Obstacles(center, generators, mask, *constraints, batch_size=batch)
+
+    def _read_constraints(self, tensordict: TensorDictBase, batch: tuple, generators: torch.Size):
+        """The polytope obstacles' ``(constraint_matrix, constraint_offset)``, or ``(None, None)`` for zonotopes."""
+        keys = [_join(self.obstacles_key, name) for name in ("constraint_matrix", "constraint_offset")]
+        matrix, offset = (tensordict.get(key, None) for key in keys)
+        if matrix is None and offset is None:
+            return None, None
+        if matrix is None or offset is None:
+            raise ValueError(f"`{_name(keys[0])}` and `{_name(keys[1])}` come together; the TensorDict holds only "
+                             f"`{_name(keys[0] if offset is None else keys[1])}`")
+        k, p = generators[-3], generators[-1]
+        reference = f"K={k} obstacles of p={p} generators, as `{_name(_join(self.obstacles_key, 'generators'))}`"
+        _check_structure(keys[0], matrix, batch, (k, None, p), reference)
+        _check_structure(keys[1], offset, batch, (k, matrix.shape[-2]), reference)
+        return matrix, offset
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         next_tensordict.set(self.safe_plan_key, tensordict.get(self.safe_plan_key))

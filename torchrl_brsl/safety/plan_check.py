@@ -8,11 +8,18 @@ from typing import NamedTuple, Sequence
 import torch
 from torch import Tensor
 
-from torchrl_brsl.collision import ZonotopeCollisionChecker
+from torchrl_brsl.collision import ZonotopeCollisionChecker, collision_value
+from torchrl_brsl.collision.closed_form import CLOSED_FORM_DIMS
 from torchrl_brsl.reach import DataDrivenReach, stack_steps
 from torchrl_brsl.safety.failsafe import Failsafe
 from torchrl_brsl.sets import Obstacles, Zonotope, reduce_girard
+from torchrl_brsl.sets._checks import skip_value_checks
 
+
+COLLISION_CHECKS = ("auto", "exact", "lp")
+"""How sets are checked against obstacles: ``"exact"`` the closed form (zonotope obstacles in 1-3 D),
+``"lp"`` the differentiable LP (any dimension, polytope obstacles), ``"auto"`` the closed form where
+it is exact, else the LP."""
 
 DEFAULT_STOP_SLACK = 0.15
 """``stop_slack`` when neither it nor ``stop_tolerance`` is given (units of the stop dims, e.g. m/s)."""
@@ -88,7 +95,10 @@ class PlanChecker:
                  action_low: Tensor, action_high: Tensor, stop_tolerance: float | Sequence[float] | Tensor | None = None,
                  stop_slack: float | Sequence[float] | Tensor | None = None,
                  position_dims: Sequence[int] | None = None, set_generators: int | None = None,
-                 margin: float = 1e-6, action_dtype: torch.dtype = torch.float64):
+                 margin: float = 1e-6, action_dtype: torch.dtype = torch.float64, collision: str = "auto"):
+        if collision not in COLLISION_CHECKS:
+            raise ValueError(f"`collision` must be one of {COLLISION_CHECKS}, got {collision!r}")
+        self.collision = collision
         self.reach = reach
         self.failsafe = failsafe
         self.horizon = int(horizon)
@@ -103,6 +113,9 @@ class PlanChecker:
         self.action_high = action_high.to(dtype)
         errors = reach.error_generators_sequence(self.horizon)  # [T, n, p]
         d = len(self.position_dims)
+        if collision == "exact" and d not in CLOSED_FORM_DIMS:
+            raise ValueError(f"`collision='exact'` (the closed form) needs an obstacle space of {CLOSED_FORM_DIMS} "
+                             f"dims, `position_dims` has {d}: use 'lp' or 'auto'")
         self.set_width = set_generators or 4 * d
         self.set_generators = reduce_girard(errors[:, self.position_dims], self.set_width)  # [T, d, ps]
         self.plan_dependent = reach.plan_dependent
@@ -341,11 +354,14 @@ class PlanChecker:
     def evaluate_with_gauge(self, x0: Tensor, plan: Tensor, obstacles: Obstacles,
                             detail: bool = True) -> tuple[PlanEvaluation, Gauge | None]:
         """:meth:`evaluate`, with the signed facet products, the facet attaining each value and the
-        facet weights (``detail``): what the adjusters linearise."""
+        facet weights (``detail``): what the adjusters linearise (``None`` from the LP)."""
+        lp = self.uses_lp(obstacles)
         if self.plan_dependent:
             actions, sets, covered = self.rollout_sets(x0, plan)
             centers = sets.center
-            self._plan_checker(sets, obstacles.generators)
+            projected = self._projected(sets)
+            if not lp:
+                self._plan_checker(projected, obstacles.generators)
             stop_room = (self.stop_slack.expand(centers.shape[0], -1) if self.stop_slack is not None else
                          self.stop_tolerance - _take(sets.generators[:, -1].abs().sum(-1), self._stop_index))
             if self.reach.bounded_domain:  # every step starts inside the model's domain
@@ -355,19 +371,16 @@ class PlanChecker:
                 covered = covered & self.reach._boxes_in_domain(starts, radius, actions)
         else:
             actions, centers = self.rollout(x0, plan)
-            self.checker(obstacles.generators)
+            projected = self.set_generators.to(centers)
+            if not lp:
+                self.checker(obstacles.generators)
             covered = torch.ones(centers.shape[0], dtype=torch.bool, device=centers.device)
             stop_room = self._stop_room.to(centers).expand(centers.shape[0], -1)
         positions = _take(centers, self._position_index)  # [B, T, d]
-        offsets = obstacles.center.unsqueeze(-3) - positions.unsqueeze(-2)  # [B, T, K, d]
-        parts = offsets.unsqueeze(-1).unbind(-2)  # d x [B, T, K, 1]
-        products = self._columns[0] * parts[0]  # [B, T, K, F]
-        for column, part in zip(self._columns[1:], parts[1:]):
-            products = products.addcmul_(column, part)
-        if detail:
-            values, best = products.abs().max(-1)
+        if lp:
+            values, gauge = _lp_values(positions, projected, obstacles), None
         else:
-            values, best = products.abs().amax(-1), None
+            values, gauge = self._closed_form_values(positions, obstacles, detail)
         values = torch.where(obstacles.mask.unsqueeze(-2), torch.nan_to_num(values, nan=0.0, posinf=0.0, neginf=0.0),
                              float("inf"))
         if self.stop_dims:
@@ -384,19 +397,43 @@ class PlanChecker:
             inside = self.reach._boxes_in_domain(starts, self._domain_radius.to(centers), actions)
             safe, covered = safe & inside, covered & inside
         evaluation = PlanEvaluation(actions, centers, values, stop_excess, safe, stop_room, covered)
-        return evaluation, (Gauge(products, best, self._checker.table.weights) if detail else None)
+        return evaluation, gauge
 
-    def _plan_checker(self, sets: Zonotope, obstacle_generators: Tensor) -> None:
-        """Facet table of plan-dependent sets ``[B, T]`` against the obstacles ``[B, K, d, p]``.
+    def uses_lp(self, obstacles: Obstacles) -> bool:
+        """Whether ``obstacles`` are checked by the LP (``collision``): polytopes, or a space beyond 3-D."""
+        needs_lp = obstacles.constrained or obstacles.dim not in CLOSED_FORM_DIMS
+        if needs_lp and self.collision == "exact":
+            raise ValueError(f"`collision='exact'` (the closed form) checks zonotope obstacles in {CLOSED_FORM_DIMS} "
+                             f"dims; these are {'polytopes' if obstacles.constrained else f'{obstacles.dim}-D'}: "
+                             "use collision='lp' or 'auto'")
+        return self.collision == "lp" or needs_lp
 
-        Each projected set is enlarged by a box of half-width :data:`MIN_SET_RADIUS` (a larger
-        set only makes the check stricter) so that ``Z(0, [G_set, G_obstacle])`` is always
+    def _closed_form_values(self, positions: Tensor, obstacles: Obstacles, detail: bool) -> tuple[Tensor, Gauge | None]:
+        """``v*`` ``[B, T, K]`` from the cached facet table, with the :class:`Gauge` when ``detail``."""
+        offsets = obstacles.center.unsqueeze(-3) - positions.unsqueeze(-2)  # [B, T, K, d]
+        parts = offsets.unsqueeze(-1).unbind(-2)  # d x [B, T, K, 1]
+        products = self._columns[0] * parts[0]  # [B, T, K, F]
+        for column, part in zip(self._columns[1:], parts[1:]):
+            products = products.addcmul_(column, part)
+        if not detail:
+            return products.abs().amax(-1), None
+        values, best = products.abs().max(-1)
+        return values, Gauge(products, best, self._checker.table.weights)
+
+    def _projected(self, sets: Zonotope) -> Tensor:
+        """Generators ``[B, T, d, ps]`` of plan-dependent sets on the obstacle space, reduced to ``set_width``.
+
+        Each projection is enlarged by a box of half-width :data:`MIN_SET_RADIUS` (a larger set
+        only makes the check stricter) so that ``Z(0, [G_set, G_obstacle])`` is always
         full-dimensional, also against the zero generators of empty obstacle slots when a
         step's sets are flat in some direction (the closed form would refuse the pair).
         """
         positions = _take(sets.generators.transpose(-1, -2), self._position_index).transpose(-1, -2)
         floor = torch.diag_embed(positions.new_full(positions.shape[:-1], MIN_SET_RADIUS))
-        projected = reduce_girard(torch.cat((positions, floor), dim=-1), self.set_width)  # [B, T, d, ps]
+        return reduce_girard(torch.cat((positions, floor), dim=-1), self.set_width)
+
+    def _plan_checker(self, projected: Tensor, obstacle_generators: Tensor) -> None:
+        """Facet table of plan-dependent sets (projected, ``[B, T, d, ps]``) against the obstacles ``[B, K, d, p]``."""
         # used once per check: deduplicating its facets (O(K^2) per pair) costs more than it saves
         self._checker = ZonotopeCollisionChecker(projected.unsqueeze(-3), obstacle_generators.unsqueeze(-4),
                                                  deduplicate=False)
@@ -441,6 +478,16 @@ class Gauge(NamedTuple):
         weights = self.weights.expand(*self.best.shape, *self.weights.shape[-2:])
         index = self.best.unsqueeze(-1).unsqueeze(-1).expand(*self.best.shape, 1, weights.shape[-1])
         return weights.gather(-2, index).squeeze(-2)
+
+
+def _lp_values(positions: Tensor, projected: Tensor, obstacles: Obstacles) -> Tensor:
+    """``v*`` ``[B, T, K]`` of the sets ``Z(positions [B, T, d], projected [(B,) T, d, ps])`` against every
+    obstacle, by the differentiable LP (:func:`~torchrl_brsl.collision.collision_value`, ``0`` where a
+    pair cannot be certified)."""
+    generators = projected.expand(*positions.shape, projected.shape[-1])
+    with skip_value_checks():  # non-finite sets are the checker's to flag (value 0), not an error
+        sets = Zonotope(positions.unsqueeze(-2), generators.unsqueeze(-3))  # [B, T, 1]
+        return collision_value(sets, obstacles.as_sets()[:, None], backend="lp")
 
 
 def _index(dims: Sequence[int]) -> slice | list[int]:

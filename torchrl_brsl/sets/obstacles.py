@@ -28,13 +28,14 @@ Examples:
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from typing import Optional, Sequence
 
 import torch
 from tensordict import TensorDict
 from torch import Tensor
 
 from torchrl_brsl.sets._tensorclass import documented_tensorclass
+from torchrl_brsl.sets.constrained_zonotope import ConstrainedZonotope
 from torchrl_brsl.sets.reduction import pad_generators
 from torchrl_brsl.sets.zonotope import Zonotope
 
@@ -44,8 +45,12 @@ __all__ = ["Obstacles", "inflate_box", "inflate_disc", "inflate_polygon", "obsta
 
 @documented_tensorclass
 class Obstacles:
-    """A padded batch of ``K`` obstacle zonotopes per env: what the safety layer checks sets against.
+    """A padded batch of ``K`` obstacles per env: what the safety layer checks sets against.
 
+    Zonotopes ``{c + G ξ : ||ξ||_∞ <= 1}``, or, with ``constraint_matrix`` and
+    ``constraint_offset``, constrained zonotopes ``{c + G ξ : ||ξ||_∞ <= 1, A ξ = b}``: any
+    convex polytope (:meth:`~torchrl_brsl.sets.ConstrainedZonotope.from_polytope`), which only
+    the LP collision check handles (:class:`~torchrl_brsl.safety.PlanChecker`'s ``collision``).
     A tensorclass of batch ``[...]`` (the envs): it indexes like a tensor (``obstacles[idx]``
     selects envs) and moves across devices. Empty slots have ``mask=False``; their centre and
     generators are never used.
@@ -54,16 +59,20 @@ class Obstacles:
         center: ``[..., K, d]``.
         generators: ``[..., K, d, p]``.
         mask: ``[..., K]`` bool, ``True`` for real obstacles.
+        constraint_matrix: ``[..., K, c, p]`` or ``None``.
+        constraint_offset: ``[..., K, c]`` or ``None``.
 
     Examples:
         >>> obstacles = Obstacles(**obstacle_batch([inflate_disc(torch.zeros(2), 0.3, 0.1)], capacity=4))
-        >>> obstacles.batch_size, obstacles.n_obstacles, obstacles.dim
-        (torch.Size([]), 4, 2)
+        >>> obstacles.batch_size, obstacles.n_obstacles, obstacles.dim, obstacles.constrained
+        (torch.Size([]), 4, 2, False)
     """
 
     center: Tensor
     generators: Tensor
     mask: Tensor
+    constraint_matrix: Optional[Tensor] = None
+    constraint_offset: Optional[Tensor] = None
 
     def __post_init__(self):
         c, g, m = self.center, self.generators, self.mask
@@ -72,6 +81,12 @@ class Obstacles:
                              f"got {tuple(c.shape)}, {tuple(g.shape)} and {tuple(m.shape)}")
         if m.dtype is not torch.bool:
             raise ValueError(f"the obstacles' `mask` must be bool (True for real obstacles), got {m.dtype}")
+        a, b = self.constraint_matrix, self.constraint_offset
+        if (a is None) != (b is None) or (a is not None and (a.shape[:-2] != m.shape or a.shape[-1] != g.shape[-1]
+                                                           or b.shape != a.shape[:-1])):
+            raise ValueError(f"`constraint_matrix` [..., K, c, p] and `constraint_offset` [..., K, c] come together, "
+                             f"matching `generators` {tuple(g.shape)}; got "
+                             f"{None if a is None else tuple(a.shape)} and {None if b is None else tuple(b.shape)}")
         self.batch_size = c.shape[:-2]
 
     @property
@@ -84,11 +99,25 @@ class Obstacles:
         """``d``, the dimension of the obstacle space."""
         return self.center.shape[-1]
 
+    @property
+    def constrained(self) -> bool:
+        """Whether the obstacles carry equality constraints (constrained zonotopes)."""
+        return self.constraint_matrix is not None and self.constraint_matrix.shape[-2] > 0
+
     def to_dtype(self, dtype: torch.dtype) -> Obstacles:
-        """The centres and generators in ``dtype`` (the mask stays bool)."""
+        """The centres, generators and constraints in ``dtype`` (the mask stays bool)."""
         if self.center.dtype == dtype and self.generators.dtype == dtype:
             return self
-        return Obstacles(self.center.to(dtype), self.generators.to(dtype), self.mask, batch_size=self.batch_size)
+        constraints = (None, None) if self.constraint_matrix is None else (self.constraint_matrix.to(dtype),
+                                                                           self.constraint_offset.to(dtype))
+        return Obstacles(self.center.to(dtype), self.generators.to(dtype), self.mask, *constraints,
+                         batch_size=self.batch_size)
+
+    def as_sets(self) -> Zonotope | ConstrainedZonotope:
+        """The obstacles as one set batch ``[..., K]`` (constrained when they carry constraints)."""
+        if self.constrained:
+            return ConstrainedZonotope(self.center, self.generators, self.constraint_matrix, self.constraint_offset)
+        return Zonotope(self.center, self.generators)
 
 
 def regular_polygon_generators(n: int, inradius: float, dtype: torch.dtype = torch.float64) -> Tensor:
@@ -254,12 +283,14 @@ def _convex_hull(points: Tensor) -> Tensor:
     return torch.tensor(lower[:-1] + upper[:-1], dtype=torch.float64)
 
 
-def obstacle_batch(zonotopes: Sequence[Zonotope], capacity: int | None = None,
+def obstacle_batch(zonotopes: Sequence[Zonotope | ConstrainedZonotope], capacity: int | None = None,
                    n_generators: int | None = None) -> TensorDict:
-    """The ``obstacles`` entry the safety layer reads, from a list of obstacle zonotopes.
+    """The ``obstacles`` entry the safety layer reads, from a list of obstacle sets.
 
     Args:
-        zonotopes: obstacles of one dimension ``d`` (e.g. from :func:`inflate_box`).
+        zonotopes: obstacles of one dimension ``d`` (e.g. from :func:`inflate_box`);
+            :class:`~torchrl_brsl.sets.ConstrainedZonotope` s (polytopes) are allowed and make
+            every slot a constrained zonotope (checked by the LP).
         capacity: ``K``, the number of slots (default: as many as obstacles); unused slots are
             zeros with ``mask=False``. Keep ``K`` fixed over an env's episodes (the specs do not
             change); ``K = 0`` is allowed.
@@ -268,7 +299,7 @@ def obstacle_batch(zonotopes: Sequence[Zonotope], capacity: int | None = None,
 
     Returns:
         A TensorDict with ``center [K, d]``, ``generators [K, d, p]`` and ``mask [K]`` (float64
-        and bool).
+        and bool), and with polytopes ``constraint_matrix [K, c, p]`` and ``constraint_offset [K, c]``.
     """
     zonotopes = list(zonotopes)
     capacity = len(zonotopes) if capacity is None else int(capacity)
@@ -282,11 +313,21 @@ def obstacle_batch(zonotopes: Sequence[Zonotope], capacity: int | None = None,
     p = widest if n_generators is None else int(n_generators)
     if p < widest:
         raise ValueError(f"`n_generators`={p} is below an obstacle's {widest} generators")
+    constrained = [z if isinstance(z, ConstrainedZonotope) else None for z in zonotopes]
+    rows = max((z.n_constraints for z in constrained if z is not None), default=0)
     center = torch.zeros(capacity, d, dtype=torch.float64)
     generators = torch.zeros(capacity, d, p, dtype=torch.float64)
+    matrix = torch.zeros(capacity, rows, p, dtype=torch.float64)
+    offset = torch.zeros(capacity, rows, dtype=torch.float64)
     mask = torch.zeros(capacity, dtype=torch.bool)
     for i, z in enumerate(zonotopes):
         center[i] = z.center.to(torch.float64)
         generators[i] = pad_generators(z.generators.to(torch.float64), p)
+        if constrained[i] is not None:
+            padded = constrained[i].pad(p, rows)
+            matrix[i], offset[i] = padded.A.to(torch.float64), padded.b.to(torch.float64)
         mask[i] = True
+    if any(z is not None for z in constrained):
+        return TensorDict(center=center, generators=generators, mask=mask, constraint_matrix=matrix,
+                          constraint_offset=offset, batch_size=[])
     return TensorDict(center=center, generators=generators, mask=mask, batch_size=[])
