@@ -377,7 +377,7 @@ class BRSLSafetyLayer(Transform):
                          f"the model's state_dim={self.reach.state_dim}")
         fresh = self._hold_plan(batch, state)
         previous = tensordict.get(self.safe_plan_key, None) if tensordict is not None else None
-        reset = tensordict.get("_reset", None) if tensordict is not None else None
+        reset = tensordict.get(self._reset_key, None) if tensordict is not None else None
         steps = torch.zeros(*batch, 1, dtype=torch.int64, device=state.device)
         if previous is not None and reset is not None:
             fresh = torch.where(reset.reshape(*batch, 1, 1), fresh, previous.to(fresh))
@@ -389,6 +389,13 @@ class BRSLSafetyLayer(Transform):
             value = torch.full((*batch, 1), float("inf")) if name == "min_collision_value" else torch.zeros(*batch, 1)
             tensordict_reset.set((self.diagnostics_key, name), value.to(dtype=dtype, device=state.device))
         return tensordict_reset
+
+    @property
+    def _reset_key(self) -> NestedKey:
+        """Where the parent env marks the envs being reset (its first reset key; ``"_reset"`` without one)."""
+        parent = self.parent
+        keys = list(parent.reset_keys) if parent is not None else []
+        return keys[0] if keys else "_reset"
 
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
         start = time.perf_counter()
