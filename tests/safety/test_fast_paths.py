@@ -5,9 +5,9 @@ import torch
 from scipy.optimize import nnls
 
 from torchrl_brsl.collision import ZonotopeCollisionChecker
-from torchrl_brsl.reach import DataDrivenReach, DoubleIntegrator
+from torchrl_brsl.reach import DataDrivenReach, DoubleIntegrator, KinematicBicycle
 from torchrl_brsl.safety import FacetQPAdjuster, Failsafe, GradientAdjuster, PlanChecker
-from torchrl_brsl.safety.adjust import _centre_jacobian, _project_polytope
+from torchrl_brsl.safety.adjust import _centre_jacobian, _leaf_jacobian, _project_polytope
 
 from safety_support import assert_closed_form_matches_autograd, obstacles_of
 
@@ -195,3 +195,30 @@ def test_layer_batch_with_some_envs_adjusted_matches_single_env_calls(reach, adj
             torch.testing.assert_close(single[k][0], batched[k][i], rtol=0, atol=1e-9)
         for name, value in single[3].items():
             torch.testing.assert_close(value[0], batched[3][name][i], rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("policy", [False, True])
+def test_leaf_jacobian_of_a_local_model_matches_finite_differences(policy):
+    """The facet QP linearises a local model along the reference's own sets (one rollout): on the drag-free
+    range of a double integrator it is the finite-difference Jacobian; on the bicycle's body frame exact at
+    the first step (a point set) and a linearisation beyond."""
+    system = DoubleIntegrator(drag=0.05, max_speed=3.0, data_speed=1.5)
+    x, xp, u = system.offline_data(500, torch.Generator().manual_seed(0))
+    reach = DataDrivenReach.fit(x, xp, u, system.noise, translation_invariant_dims=(0, 1), max_generators=24)
+    failsafe = Failsafe(torch.zeros(2, dtype=D), N_BRK, system.braking if policy else None)
+    checker = PlanChecker(reach, failsafe, N_PLAN + N_BRK, stop_dims=(2, 3), stop_slack=0.1,
+                          action_low=system.action_low, action_high=system.action_high)
+    gen = torch.Generator().manual_seed(1)
+    x0, plan = system.sample_states(8, gen) * 0.3, system.sample_actions(8, N_PLAN, generator=gen) * 0.5
+    torch.testing.assert_close(_leaf_jacobian(checker, x0, plan), _centre_jacobian(checker, x0, plan),
+                               rtol=1e-4, atol=1e-5)
+    bicycle = KinematicBicycle()
+    x, xp, u = bicycle.offline_data(500, torch.Generator().manual_seed(0))
+    reach = DataDrivenReach.fit(x, xp, u, bicycle.noise, translation_invariant_dims=(0, 1), max_generators=24,
+                                body_frame=bicycle.body_frame)
+    checker = PlanChecker(reach, Failsafe(torch.zeros(2, dtype=D), N_BRK, bicycle.braking if policy else None),
+                          N_PLAN + N_BRK, stop_dims=(3,), stop_slack=0.1, action_low=bicycle.action_low,
+                          action_high=bicycle.action_high)
+    x0, plan = bicycle.sample_states(8, gen) * 0.3, bicycle.sample_actions(8, N_PLAN, generator=gen) * 0.5
+    torch.testing.assert_close(_leaf_jacobian(checker, x0, plan)[:, 0], _centre_jacobian(checker, x0, plan)[:, 0],
+                               rtol=1e-4, atol=1e-5)

@@ -378,17 +378,18 @@ class DataDrivenReach(nn.Module):
             sets.append(generators)
         return stack_steps(centers, sets), covered
 
-    def step_sets(self, center: Tensor, generators: Tensor, action: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    def step_sets(self, center: Tensor, generators: Tensor, action: Tensor,
+                  tangents: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, ...]:
         """One step of a local model: ``R_j = Z(center, generators)`` under ``action`` ``[..., m]``
-        (:class:`~torchrl_brsl.reach.local_step.LocalStep`).
+        (:class:`~torchrl_brsl.reach.local_step.LocalStep`, which also maps ``tangents``).
 
         Returns:
             ``(center [..., n], generators [..., n, p'], covered [...])`` of ``R_{j+1}``
-            (generators reduced to ``max_generators`` when set).
+            (generators reduced to ``max_generators`` when set), and the mapped tangents if given.
         """
         if ("step",) not in self._cache:
             self._cache[("step",)] = LocalStep(self)
-        return self._cache[("step",)](center, generators, action)
+        return self._cache[("step",)](center, generators, action, tangents)
 
     @property
     def _leaf_rows(self) -> Tensor:

@@ -87,12 +87,19 @@ class LocalStep:
         self.box_noise = self.noise_radius[self.rotated]  # the rotated dims' noise goes to the box
         self.noise_radius = self.noise_radius * self.unrotated
 
-    def __call__(self, center: Tensor, generators: Tensor, action: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    def __call__(self, center: Tensor, generators: Tensor, action: Tensor,
+                 tangents: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, ...]:
         """``R_{j+1}`` of ``R_j = Z(center [..., n], generators [..., n, p])`` under ``action`` ``[..., m]``.
+
+        Args:
+            tangents: optional ``(dc [..., n, k], du [..., m, k])``: directions of the centre and
+                the action, mapped to the new centre's to first order with the step's leaf
+                models and relaxations held fixed (a linearisation for the adjusters).
 
         Returns:
             ``(center [..., n], generators [..., n, p'], covered [...])`` (generators reduced to
-            ``max_generators`` when set); ``covered``: the step lies in the data's region.
+            ``max_generators`` when set); ``covered``: the step lies in the data's region. With
+            ``tangents``, also the new centre's directions ``[..., n, k]``.
         """
         cells, n = self.cells, self.state_dim
         z_raw = torch.cat((center.index_select(-1, self.free), action), dim=-1)  # [..., d]
@@ -123,6 +130,7 @@ class LocalStep:
         B = B + along[..., len(self.inv_scale_free):]
         new_center = (A @ center.unsqueeze(-1) + B @ action.unsqueeze(-1)).squeeze(-1) + offset
         carried = A @ generators
+        moved = None if tangents is None else self._tangents(center, new_center, A, B, *tangents)
         if self.body_frame is None:
             new = (torch.diag_embed(errors + self.noise_radius),)
         else:
@@ -133,7 +141,23 @@ class LocalStep:
         if self.max_generators is not None and generators.shape[-1] > self.max_generators:
             with skip_value_checks():  # finite by construction
                 generators = reduce_girard(generators, self.max_generators)
-        return new_center, generators, covered
+        return (new_center, generators, covered) if tangents is None else (new_center, generators, covered, moved)
+
+    def _tangents(self, center: Tensor, body_center: Tensor, A: Tensor, B: Tensor, dc: Tensor, du: Tensor) -> Tensor:
+        """``d new centre = J_c dc + J_u du`` ``[..., n, k]``: the affine part of the step (``A``, ``B`` with the
+        relaxations folded in) and, with a body frame, the first-order terms of the rotation ``M(q) h``
+        (``body_center`` the step's centre before it)."""
+        moved = A @ dc + B @ du
+        if self.body_frame is None:
+            return moved
+        frame, index, pairs = self.body_frame, self.rotated, (-1, 2)
+        q0, q_tangents, _ = frame.heading_form(center, dc)
+        zeros = q0.new_zeros(*q0.shape[:-1], 1, 2)
+        h0 = (body_center.index_select(-1, index) - self.noise_center[self.rotated]).unflatten(-1, pairs)
+        _, rotated, _, _ = frame.rotate((q0.unsqueeze(-2), q_tangents.unsqueeze(-3), zeros), h0,
+                                        moved.index_select(-2, index).unflatten(-2, pairs), torch.zeros_like(h0))
+        rotated = rotated.flatten(-3, -2) + self.moves.unsqueeze(-1) * dc.index_select(-2, index)
+        return moved.index_copy(-2, index, rotated)
 
     def _rotate(self, center: Tensor, generators: Tensor, new_center: Tensor, carried: Tensor,
                 errors: Tensor) -> tuple[Tensor, Tensor, tuple[Tensor, Tensor]]:

@@ -223,8 +223,9 @@ class FacetQPAdjuster:
             jacobian = _feedback_jacobian(checker, ref_eval.centers, horizon)  # [B, T, n, N]
             pos_jac = jacobian[:, :, checker.position_dims]  # [B, T, d, N]
             stop_jac = jacobian[:, -1, checker.stop_dims]  # [B, s, N]
-        elif affine is None:  # feedback braking: linearise the tail by finite differences
-            jacobian = _centre_jacobian(checker, x0, reference)  # [B, T, n, P, m]
+        elif affine is None:  # local model, or feedback braking: linearise along the reference's sets
+            linearise = _leaf_jacobian if checker.plan_dependent else _centre_jacobian
+            jacobian = linearise(checker, x0, reference)  # [B, T, n, P, m]
             pos_jac = jacobian[:, :, checker.position_dims].flatten(-2)  # [B, T, d, N]
             stop_jac = jacobian[:, -1, checker.stop_dims].flatten(-2)  # [B, s, N]
         else:  # exact and shared by all envs
@@ -345,19 +346,8 @@ def _feedback_jacobian(checker: PlanChecker, centers: Tensor, plan_steps: int) -
     jacobians = [plan_part.expand(n_envs, *plan_part.shape)]
     n_tail = horizon - plan_steps
     if n_tail:
-        with torch.enable_grad():
-            states = centers[:, plan_steps - 1:horizon - 1].detach().requires_grad_(True)  # [B, n_tail, n]
-            raw = checker.failsafe.policy(states).to(states.dtype)  # [B, n_tail, m]
-            rows = []
-            for i in range(m):
-                grad = (torch.autograd.grad(raw[..., i].sum(), states, retain_graph=i + 1 < m, allow_unused=True)[0]
-                        if raw.requires_grad else None)
-                rows.append(torch.zeros_like(states) if grad is None else grad)
-        derivative = torch.stack(rows, dim=-2)  # [B, n_tail, m, n]
-        raw = raw.detach()
-        unclipped = (raw > checker.action_low) & (raw < checker.action_high)
-        closed_loop = reach.state_matrix.to(centers) + reach.input_matrix.to(centers) @ (
-            derivative * unclipped.unsqueeze(-1))  # [B, n_tail, n, n]
+        derivative = _brake_derivative(checker, centers[:, plan_steps - 1:horizon - 1])  # [B, n_tail, m, n]
+        closed_loop = reach.state_matrix.to(centers) + reach.input_matrix.to(centers) @ derivative  # [B, n_tail, n, n]
         current = jacobians[0][:, -1]
         tail = []
         for k in range(n_tail):
@@ -365,6 +355,53 @@ def _feedback_jacobian(checker: PlanChecker, centers: Tensor, plan_steps: int) -
             tail.append(current)
         jacobians.append(torch.stack(tail, dim=1))
     return torch.cat(jacobians, dim=1)
+
+
+def _brake_derivative(checker: PlanChecker, states: Tensor) -> Tensor:
+    """``d brake / d state`` ``[..., m, n]`` of the braking policy at ``states`` ``[..., n]`` (one batched
+    backward pass per action dim), zero where the braking action is clipped to the action bounds."""
+    m = checker.action_low.shape[-1]
+    with torch.enable_grad():
+        states = states.detach().requires_grad_(True)
+        raw = checker.failsafe.policy(states).to(states.dtype)  # [..., m]
+        rows = []
+        for i in range(m):
+            grad = (torch.autograd.grad(raw[..., i].sum(), states, retain_graph=i + 1 < m, allow_unused=True)[0]
+                    if raw.requires_grad else None)
+            rows.append(torch.zeros_like(states) if grad is None else grad)
+    raw = raw.detach()
+    unclipped = (raw > checker.action_low) & (raw < checker.action_high)
+    return torch.stack(rows, dim=-2) * unclipped.unsqueeze(-1)
+
+
+def _leaf_jacobian(checker: PlanChecker, x0: Tensor, plan: Tensor) -> Tensor:
+    """``d centres / d plan`` ``[B, T, n, P, m]`` of a local model along the plan's own sets.
+
+    Each step maps the centres' directions with the leaf models and relaxations it chose
+    (held fixed; :meth:`DataDrivenReach.step_sets` ``tangents``), and a braking policy's tail
+    with its derivative at the centres: one rollout, where finite differences need ``P m + 1``.
+    Exact at a point set between kinks; a linearisation elsewhere (every iterate is still checked).
+    """
+    n_envs, plan_steps, m = plan.shape
+    n_vars, reach = plan_steps * m, checker.reach
+    basis = torch.eye(n_vars, dtype=plan.dtype, device=plan.device).view(plan_steps, m, n_vars)
+    center = x0.to(plan.dtype)
+    generators = center.new_zeros(n_envs, reach.state_dim, 0)
+    tangent = center.new_zeros(n_envs, reach.state_dim, n_vars)
+    jacobians = []
+    for j in range(checker.horizon):
+        if j < plan_steps:
+            action, moved = plan[:, j], basis[j].expand(n_envs, m, n_vars)
+        elif checker.failsafe.policy is None:
+            action, moved = checker._hold(plan).expand(n_envs, m), tangent.new_zeros(n_envs, m, n_vars)
+        else:
+            brake = torch.minimum(torch.maximum(checker.failsafe.actions(center), checker.action_low),
+                                  checker.action_high)
+            action = brake.to(checker.action_dtype).to(center.dtype)
+            moved = _brake_derivative(checker, center) @ tangent
+        center, generators, _, tangent = reach.step_sets(center, generators, action, (tangent, moved))
+        jacobians.append(tangent)
+    return torch.stack(jacobians, dim=1).view(n_envs, checker.horizon, reach.state_dim, plan_steps, m)
 
 
 def _centre_jacobian(checker: PlanChecker, x0: Tensor, plan: Tensor, eps: float = 1e-6) -> Tensor:
