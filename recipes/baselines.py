@@ -14,6 +14,7 @@ import torch
 from omegaconf import DictConfig
 
 import envs
+from recipes.tasks import make_base_env, offline_data
 from torchrl_brsl.baselines import (
     AffineModel,
     LinearSafetyModel,
@@ -60,12 +61,10 @@ def _check_signals(cfg: DictConfig, env) -> None:
 
 def fit(cfg: DictConfig, cache_dir: str | Path) -> dict:
     """The baseline's models from the task's offline data (cached like BRSL's)."""
-    from recipes import common
-
     baseline = name(cfg)
     info = envs.safety_info(cfg.task.name)
-    data = common.offline_data(cfg.task, cache_dir, cfg.seed)
-    env = common.make_base_env(cfg.task, cfg.seed + 54321)
+    data = offline_data(cfg.task, cache_dir, cfg.seed)
+    env = make_base_env(cfg.task, cfg.seed + 54321)
     _check_signals(cfg, env)
     if baseline == "rts":
         _rts_options(cfg)

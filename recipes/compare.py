@@ -14,8 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-from recipes import common
 from recipes.evaluate import evaluate_run, plot_rewards, write_results
+from recipes.runs import load_config, runs_of
+from recipes.tasks import task_kind
 
 #: methods in the paper's column order; others follow alphabetically
 ORDER = ["brsl", "td3"]
@@ -30,7 +31,7 @@ def _read_eval(run_dir: Path) -> dict:
 def compare(task_dir: str | Path, episodes: int | None = None, reuse: bool = False) -> str:
     """Evaluates (or reuses) every run under ``task_dir``; returns the Markdown table."""
     task_dir = Path(task_dir)
-    runs = common.runs_of(task_dir)
+    runs = runs_of(task_dir)
     if not runs:
         raise FileNotFoundError(f"no runs under {task_dir} (expected <method>/seed<k>/config.yaml)")
     columns = []
@@ -44,7 +45,7 @@ def compare(task_dir: str | Path, episodes: int | None = None, reuse: bool = Fal
         merged["method"] = f"{method}" + (f" ({len(per_seed)} seeds)" if len(per_seed) > 1 else "")
         merged["episodes"] = int(merged["episodes"])
         columns.append(merged)
-    kind = common.task_kind(common.load_config(task_dir, next(iter(runs))).task)
+    kind = task_kind(load_config(task_dir, next(iter(runs))).task)
     text = write_results(columns, task_dir, "comparison", kind)
     plot_rewards(task_dir)
     return text

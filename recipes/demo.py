@@ -17,8 +17,8 @@ import argparse
 import time
 from pathlib import Path
 
-from recipes import common
 from recipes.compare import compare
+from recipes.setup import compose_config
 from recipes.train import train
 
 
@@ -31,7 +31,7 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     start = time.perf_counter()
     for method in ("brsl", "td3"):
-        cfg = common.compose_config([
+        cfg = compose_config([
             f"task={args.task}", f"method={method}", f"seed={args.seed}", f"root={args.root}",
             f"total_frames={args.frames}", f"init_random_frames={min(1000, args.frames // 5)}",
             "checkpoint.every_frames=100000", "resume=false"])

@@ -20,7 +20,10 @@ import numpy as np
 import torch
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from recipes import common
+from recipes.environments import make_env
+from recipes.runs import load_config, load_run, runs_of, seed_curves
+from recipes.setup import threads
+from recipes.tasks import task_kind
 
 #: the rows of the paper's tables: (key, label) per task kind
 ROWS = {
@@ -45,7 +48,7 @@ def run_episodes(cfg, actor, models, episodes: int | None = None, seed: int = 10
     interventions, failsafes, holds, outside = [], [], [], []
     frames = []
     for layout in range(n):
-        env = common.make_env(cfg, seed=seed + layout, models=models, layout=layout, evaluation=True)
+        env = make_env(cfg, seed=seed + layout, models=models, layout=layout, evaluation=True)
         td = env.reset()
         reward, goal, hit = 0.0, False, False
         while True:
@@ -162,12 +165,12 @@ def plot_rewards(task_dir: str | Path, path: str | Path | None = None) -> Path |
     import matplotlib.pyplot as plt
 
     task_dir = Path(task_dir)
-    runs = common.runs_of(task_dir)
+    runs = runs_of(task_dir)
     if not runs:
         return None
     fig, ax = plt.subplots(figsize=(5, 3.5))
     for method, dirs in sorted(runs.items()):
-        curves = common.seed_curves(dirs, "train/episode_reward")
+        curves = seed_curves(dirs, "train/episode_reward")
         if curves is None:
             continue
         grid, values = curves
@@ -188,10 +191,10 @@ def plot_rewards(task_dir: str | Path, path: str | Path | None = None) -> Path |
 def evaluate_run(run_dir: str | Path, episodes: int | None = None, video: bool = False) -> dict:
     """Evaluates one run, writes ``eval.csv``/``eval.md`` into it and returns its metrics."""
     run_dir = Path(run_dir)
-    cfg, actor, models = common.load_run(run_dir)
-    common.threads(cfg.threads)
+    cfg, actor, models = load_run(run_dir)
+    threads(cfg.threads)
     result = run_episodes(cfg, actor, models, episodes, video_path=run_dir / "episode.gif" if video else None)
-    write_results([result], run_dir, "eval", common.task_kind(cfg.task))
+    write_results([result], run_dir, "eval", task_kind(cfg.task))
     return result
 
 
@@ -205,7 +208,7 @@ def main(argv=None) -> None:
     for run in args.runs:
         by_task.setdefault(Path(run).resolve().parent.parent, []).append(evaluate_run(run, args.episodes, args.video))
     for task_dir, results in by_task.items():
-        print(table(results, common.task_kind(common.load_config(task_dir, results[0]["method"]).task)))
+        print(table(results, task_kind(load_config(task_dir, results[0]["method"]).task)))
         plot = plot_rewards(task_dir)
         if plot:
             print(f"reward plot: {plot}")

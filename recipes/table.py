@@ -21,7 +21,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from recipes import common
+from recipes.runs import load_config, runs_of, seed_curves
+from recipes.tasks import task_kind
 
 #: the paper's column order; its names for the columns
 METHODS = ["brsl", "rts", "sailr", "secas", "td3"]
@@ -62,10 +63,10 @@ def collect(root: str | Path, episodes: int | None = None, reuse: bool = False) 
 
     out: dict = {}
     for task_dir in sorted(p for p in Path(root).iterdir() if p.is_dir()):
-        runs = common.runs_of(task_dir)
+        runs = runs_of(task_dir)
         if not runs:
             continue
-        kind = common.task_kind(common.load_config(task_dir, next(iter(runs))).task)
+        kind = task_kind(load_config(task_dir, next(iter(runs))).task)
         methods = {}
         for method, dirs in runs.items():
             rows = []
@@ -140,9 +141,9 @@ def plot_fig4(root: str | Path, results: dict, path: str | Path | None = None) -
         return None
     fig, axes = plt.subplots(1, len(tasks), figsize=(4.5 * len(tasks), 3.5), squeeze=False)
     for ax, task in zip(axes[0], tasks):
-        runs = common.runs_of(Path(root) / task)
+        runs = runs_of(Path(root) / task)
         for method in [m for m in METHODS if m in runs] + sorted(m for m in runs if m not in METHODS):
-            curves = common.seed_curves(runs[method], "train/episode_reward")
+            curves = seed_curves(runs[method], "train/episode_reward")
             if curves is None:
                 continue
             grid, values = curves

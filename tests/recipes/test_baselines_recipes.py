@@ -5,8 +5,11 @@ import pytest
 import torch
 from hydra.errors import MissingConfigException
 
-from recipes import baselines, common
+from recipes import baselines
+from recipes.environments import make_env
 from recipes.evaluate import evaluate_run
+from recipes.runs import read_scalar
+from recipes.setup import compose_config
 from recipes.train import train
 
 TINY = ["frames_per_batch=100", "init_random_frames=200", "batch_size=64", "hidden=[32,32]",
@@ -14,7 +17,7 @@ TINY = ["frames_per_batch=100", "init_random_frames=200", "batch_size=64", "hidd
 
 
 def config(tmp, task, method, frames, *extra):
-    return common.compose_config([f"task={task}", f"method={method}", f"root={tmp}", f"total_frames={frames}",
+    return compose_config([f"task={task}", f"method={method}", f"root={tmp}", f"total_frames={frames}",
                                   *TINY, *extra])
 
 
@@ -26,7 +29,7 @@ def test_each_baseline_trains_resumes_and_evaluates(tmp_path, method):
                 run)
     assert out["totals"]["frames"] == 300 and (run / baselines.FILE).exists()
     assert f"{method}/intervention_rate" in out["metrics"] and f"{method}/compute_time_ms" in out["metrics"]
-    assert len(common.read_scalar(run, f"{method}/intervention_rate")[0]) > 0
+    assert len(read_scalar(run, f"{method}/intervention_rate")[0]) > 0
     resumed = train(config(tmp_path, "point_boxes", method, 400, "method.fit.steps=200" if method == "secas"
                            else "seed=0"), run)
     assert resumed["totals"]["frames"] == 400 and resumed["totals"]["updates"] > out["totals"]["updates"]
@@ -40,13 +43,13 @@ def test_each_baseline_trains_resumes_and_evaluates(tmp_path, method):
 def test_sailr_interventions_end_training_episodes_with_the_absorbing_reward(tmp_path):
     cfg = config(tmp_path, "point_circle", "sailr", 300, "init_random_frames=300")
     models = baselines.fit(cfg, tmp_path / "cache")
-    env = common.make_env(cfg, 0, models)
+    env = make_env(cfg, 0, models)
     td = env.rollout(300, lambda td: td.set("action", torch.where(td["state"][:2] >= 0, 1.0, -1.0).float()))
     assert td["next", "baseline", "intervened"][-1].item() and td["next", "terminated"][-1].item()
     assert td["next", "reward"][-1].item() == cfg.method.intervention_reward
     assert not td["next", "collision"].any()
     # in evaluation the backup acts and the episode goes on
-    env = common.make_env(cfg, 0, models, evaluation=True)
+    env = make_env(cfg, 0, models, evaluation=True)
     td = env.rollout(60, lambda td: td.set("action", torch.where(td["state"][:2] >= 0, 1.0, -1.0).float()))
     assert td.shape[0] == 60 and td["next", "baseline", "intervened"].sum() > 1 and not td["next", "collision"].any()
 

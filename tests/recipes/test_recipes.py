@@ -6,9 +6,11 @@ from pathlib import Path
 import pytest
 import torch
 
-from recipes import common
 from recipes.compare import compare
 from recipes.evaluate import evaluate_run, main as evaluate_main
+from recipes.runs import load_run, read_scalar
+from recipes.safety_models import horizon
+from recipes.setup import compose_config
 from recipes.train import train
 from torchrl_brsl.reach import BodyFrame
 
@@ -17,7 +19,7 @@ TINY = ["frames_per_batch=100", "init_random_frames=200", "batch_size=64", "hidd
 
 
 def config(tmp, task, method, frames, *extra):
-    return common.compose_config([f"task={task}", f"method={method}", f"root={tmp}", f"total_frames={frames}",
+    return compose_config([f"task={task}", f"method={method}", f"root={tmp}", f"total_frames={frames}",
                                   *TINY, *extra])
 
 
@@ -51,12 +53,12 @@ def test_runs_write_config_reach_checkpoint_and_logs(point_boxes_runs):
     for path in ("config.yaml", "reach.pt", "checkpoint.pt"):
         assert (brsl / path).exists()
     assert not (td3 / "reach.pt").exists()
-    steps, rewards = common.read_scalar(brsl, "train/episode_reward")
+    steps, rewards = read_scalar(brsl, "train/episode_reward")
     assert len(steps) > 0 and torch.isfinite(torch.as_tensor(rewards)).all()
     for name in ("brsl/intervention_rate", "brsl/failsafe_rate", "brsl/compute_time_ms", "train/loss_qvalue",
                  "train/loss_actor", "train/collisions"):
-        assert len(common.read_scalar(brsl, name)[0]) > 0, name
-    assert len(common.read_scalar(td3, "brsl/intervention_rate")[0]) == 0
+        assert len(read_scalar(brsl, name)[0]) > 0, name
+    assert len(read_scalar(td3, "brsl/intervention_rate")[0]) == 0
 
 
 def test_resume_continues_from_the_checkpoint(point_boxes_runs):
@@ -65,7 +67,7 @@ def test_resume_continues_from_the_checkpoint(point_boxes_runs):
     assert resumed["totals"]["updates"] > brsl["totals"]["updates"]
     state = torch.load(run_dir(tmp, "point_boxes", "brsl") / "checkpoint.pt", weights_only=False)
     assert state["frames"] == 800
-    steps, _ = common.read_scalar(run_dir(tmp, "point_boxes", "brsl"), "train/collisions")
+    steps, _ = read_scalar(run_dir(tmp, "point_boxes", "brsl"), "train/collisions")
     assert steps.max() == 800 and len(set(steps.tolist())) == len(steps)  # logs continued, not restarted
     # a finished run returns at once
     again = train(config(tmp, "point_boxes", "brsl", 800), run_dir(tmp, "point_boxes", "brsl"))
@@ -112,7 +114,7 @@ def test_ensemble_planner(tmp_path):
                        "method.ensemble.hidden_size=32", "method.ensemble.updates_per_batch=2"),
                 run_dir(tmp_path, "point_boxes", "brsl"))
     assert out["totals"]["collisions"] == 0
-    assert len(common.read_scalar(run_dir(tmp_path, "point_boxes", "brsl"), "train/loss_world_model")[0]) > 0
+    assert len(read_scalar(run_dir(tmp_path, "point_boxes", "brsl"), "train/loss_world_model")[0]) > 0
 
 
 def test_unknown_planner_is_rejected(tmp_path):
@@ -146,7 +148,7 @@ def test_hydra_entry_point(tmp_path):
 def test_exploration_is_damped_every_frame(tmp_path, schedule):
     train(config(tmp_path, "point_boxes", "td3", 400, f"exploration.schedule={schedule}", "exploration.sigma_end=0.1"),
           run_dir(tmp_path, "point_boxes", "td3"))
-    _, sigma = common.read_scalar(run_dir(tmp_path, "point_boxes", "td3"), "train/sigma")
+    _, sigma = read_scalar(run_dir(tmp_path, "point_boxes", "td3"), "train/sigma")
     assert (sigma[1:] < sigma[:-1]).all() and sigma[-1] == pytest.approx(0.1, rel=1e-4)
     if schedule == "geometric":  # a constant ratio per batch of frames
         assert sigma[2] / sigma[1] == pytest.approx(sigma[1] / sigma[0], rel=1e-4)
@@ -156,9 +158,9 @@ def test_exploration_is_damped_every_frame(tmp_path, schedule):
 
 
 def test_without_a_planner_the_layer_checks_one_action_and_the_braking_tail():
-    assert common.horizon(common.compose_config(["task=diffdrive_nav"])) == (1, 6)
-    assert common.horizon(common.compose_config(["task=diffdrive_nav", "method.planner=ensemble"])) == (8, 6)
-    assert common.horizon(common.compose_config(["task=point_circle", "method.planner=ensemble"])) == (5, 12)
+    assert horizon(compose_config(["task=diffdrive_nav"])) == (1, 6)
+    assert horizon(compose_config(["task=diffdrive_nav", "method.planner=ensemble"])) == (8, 6)
+    assert horizon(compose_config(["task=point_circle", "method.planner=ensemble"])) == (5, 12)
 
 
 def test_collector_processes(tmp_path):
@@ -188,7 +190,7 @@ def test_diffdrive_brsl_run_saves_and_reloads_its_models(tmp_path):
     train(config(tmp_path, "diffdrive_nav", "brsl", 100, "init_random_frames=100", "task.episode_steps=30"),
           run_dir(tmp_path, "diffdrive_nav", "brsl"))
     assert (run_dir(tmp_path, "diffdrive_nav", "brsl") / "local_reach.pt").exists()
-    _, _, models = common.load_run(run_dir(tmp_path, "diffdrive_nav", "brsl"))
+    _, _, models = load_run(run_dir(tmp_path, "diffdrive_nav", "brsl"))
     assert models.local is not None and models.local.bounded_domain and not models.reach.bounded_domain
     assert models.reach.method == "local" and models.reach.body_frame == BodyFrame((0, 1), (2, 3))
     assert evaluate_run(run_dir(tmp_path, "diffdrive_nav", "brsl"), episodes=1)["collision_rate"] == 0.0

@@ -1,0 +1,65 @@
+"""Finished runs on disk: a run's config, actor and models, the runs of a task, and their logged scalars.
+
+A run directory (``runs/<task>/<method>/seed<k>/``) holds everything a run needs to be
+evaluated or resumed: ``config.yaml`` (the resolved config), ``reach.pt`` (the fitted
+reachability model, BRSL only; ``local_reach.pt`` for a task's low-speed model),
+``checkpoint.pt``, the CSV logs under ``logs/`` and the evaluation outputs.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from recipes import baselines
+from recipes.environments import make_env
+from recipes.networks import make_actor
+from recipes.safety_models import SafetyModels
+
+
+def load_run(run_dir: str | Path):
+    """``(cfg, actor, models)`` of a trained run (``models`` is None for methods without a layer)."""
+    run_dir = Path(run_dir)
+    cfg = OmegaConf.load(run_dir / "config.yaml")
+    models = SafetyModels.load(run_dir) if cfg.method.layer else baselines.load(run_dir) \
+        if baselines.name(cfg) else None
+    env = make_env(cfg, seed=0, models=models)
+    actor = make_actor(env, cfg.hidden)
+    state = torch.load(run_dir / "checkpoint.pt", map_location="cpu", weights_only=False)
+    actor.load_state_dict(state["actor"])
+    env.close()
+    return cfg, actor, models
+
+
+def load_config(task_dir: str | Path, method: str) -> DictConfig:
+    """The config of the first run of ``method`` under ``task_dir``."""
+    return OmegaConf.load(runs_of(task_dir)[method][0] / "config.yaml")
+
+
+def runs_of(task_dir: str | Path) -> dict[str, list[Path]]:
+    """``{method: [run dirs]}`` under ``<root>/<task>/<method>/seed<k>``."""
+    found: dict[str, list[Path]] = {}
+    for config in sorted(Path(task_dir).glob("*/seed*/config.yaml")):
+        found.setdefault(config.parent.parent.name, []).append(config.parent)
+    return found
+
+
+def read_scalar(run_dir: str | Path, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(steps, values)`` of one scalar from a run's CSV log (TorchRL ``CSVLogger`` layout)."""
+    files = list(Path(run_dir, "logs").glob(f"*/scalars/{name}.csv"))
+    if not files:
+        return np.zeros(0), np.zeros(0)
+    rows = np.loadtxt(files[0], delimiter=",", ndmin=2)
+    return (rows[:, 0], rows[:, 1]) if rows.size else (np.zeros(0), np.zeros(0))
+
+
+def seed_curves(run_dirs, name: str) -> tuple[np.ndarray, np.ndarray] | None:
+    """One scalar of several runs on a common step grid: ``(grid [S], values [runs, S])``, or
+    ``None`` when no run logged it (runs without it are left out)."""
+    curves = [c for c in (read_scalar(d, name) for d in run_dirs) if len(c[0])]
+    if not curves:
+        return None
+    grid = np.unique(np.concatenate([steps for steps, _ in curves]))
+    return grid, np.stack([np.interp(grid, steps, values) for steps, values in curves])

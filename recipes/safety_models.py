@@ -1,0 +1,79 @@
+"""BRSL's safety layer: the reachability models fitted on the task's offline data, the horizon it checks,
+and the layer itself."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import NamedTuple
+
+from omegaconf import DictConfig
+
+import envs
+from recipes.tasks import local_domain, offline_data
+from torchrl_brsl.reach import BodyFrame, DataDrivenReach
+from torchrl_brsl.safety import BRSLSafetyLayer, Failsafe
+from torchrl_brsl.sets import Zonotope
+
+
+class SafetyModels(NamedTuple):
+    """The layer's reachability models: ``reach`` (paper Alg. 2) and, when the task config has a
+    ``local`` section, a second model of a low-speed domain (see :class:`BRSLSafetyLayer`)."""
+
+    reach: DataDrivenReach
+    local: DataDrivenReach | None = None
+
+    @classmethod
+    def fit(cls, cfg: DictConfig, cache_dir: str | Path) -> SafetyModels:
+        """Offline data (cached) and the fitted models."""
+        info = envs.safety_info(cfg.task.name)
+        noise = Zonotope(info.noise_center.double(), info.noise_generators.double())
+        method = cfg.method.get("reach", "local")
+        if method == "auto":  # the task's choice
+            method = cfg.task.safety.get("reach", "global")
+        options = {"translation_invariant_dims": info.position_dims, "max_generators": cfg.method.max_generators,
+                   "method": method}
+        if method == "local" and info.heading_dims and cfg.method.get("body_frame", True):
+            options["body_frame"] = BodyFrame(info.position_dims, info.heading_dims)
+        reach = DataDrivenReach.from_data(offline_data(cfg.task, cache_dir, cfg.seed), noise, **options)
+        local = None
+        if cfg.task.get("local") is not None:
+            local = DataDrivenReach.from_data(offline_data(cfg.task, cache_dir, cfg.seed, local=True), noise,
+                                              domain=local_domain(cfg.task), **options)
+        return cls(reach, local)
+
+    def save(self, run_dir: str | Path) -> None:
+        self.reach.save(Path(run_dir) / "reach.pt")
+        if self.local is not None:
+            self.local.save(Path(run_dir) / "local_reach.pt")
+
+    @classmethod
+    def load(cls, run_dir: str | Path) -> SafetyModels:
+        local = Path(run_dir) / "local_reach.pt"
+        return cls(DataDrivenReach.load(Path(run_dir) / "reach.pt"),
+                   DataDrivenReach.load(local) if local.exists() else None)
+
+
+def horizon(cfg: DictConfig) -> tuple[int, int]:
+    """``(n_plan, n_brk)``: the task's SafetyInfo unless the task config overrides them.
+
+    Without a planner the proposal is one action, so ``n_plan = 1``: the layer checks that
+    action and the braking tail, ``1 + n_brk`` sets, rather than sets that keep growing
+    after the robot has stopped.
+    """
+    info = envs.safety_info(cfg.task.name)
+    n_plan = 1 if cfg.method.get("planner", "none") == "none" else cfg.task.safety.get("n_plan") or info.n_plan
+    n_brk = cfg.task.safety.get("n_brk") or info.n_brk
+    return int(n_plan), int(n_brk)
+
+
+def make_layer(cfg: DictConfig, models: SafetyModels) -> BRSLSafetyLayer:
+    """The safety layer with the task's SafetyInfo; stopped = final centre within the slack of rest."""
+    info = envs.safety_info(cfg.task.name)
+    reach = models.reach
+    n_plan, n_brk = horizon(cfg)
+    braking = info.braking_policy if cfg.task.safety.braking == "policy" else None
+    adjuster = None if cfg.method.adjuster == "none" else cfg.method.adjuster  # the layer's registry checks the name
+    return BRSLSafetyLayer(
+        reach, Failsafe(info.braking_action, n_brk, policy=braking), n_plan, stop_dims=info.velocity_dims,
+        stop_slack=cfg.method.stop_slack, action_low=info.action_low,
+        action_high=info.action_high, adjuster=adjuster, penalty=cfg.method.penalty,
+        local_reach=models.local)
