@@ -203,3 +203,20 @@ def test_highs_oracle_is_independent_of_the_sets_module():
         np.testing.assert_allclose(A, np64(inter.A))
         np.testing.assert_allclose(b, np64(inter.b))
         assert np.isfinite(highs_gauge(A, b)[0])
+
+
+def test_a_flat_pair_is_widened_on_request_and_only_stricter():
+    """A 2 km flat wall beside a set of 1e-6: Z(0, [G1, G2]) is numerically flat. Without ``widen`` the
+    checker refuses it; with it the pair gets a tiny box, and its values are never above the LP's."""
+    D = torch.float64
+    tiny = 1e-6 * torch.eye(2, dtype=D).view(1, 1, 2, 2)
+    wall = torch.tensor([[1e3], [0.0]], dtype=D).view(1, 1, 2, 1)
+    with pytest.raises(ValueError, match="not full-dimensional"):
+        ZonotopeCollisionChecker(tiny, wall)
+    checker = ZonotopeCollisionChecker(tiny, wall, widen=True)
+    centers = torch.tensor([[0.0, 0.5], [0.0, 1e-9], [5.0, 0.0]], dtype=D).view(3, 1, 2)
+    values = checker.value(centers, torch.zeros(1, 1, 2, dtype=D))
+    sets = Zonotope(centers.squeeze(1), tiny[0, 0].expand(3, 2, 2))
+    exact = collision_value(sets, Zonotope(torch.zeros(2, dtype=D), wall[0, 0]), backend="lp")
+    assert (values.squeeze(-1) <= exact * (1 + 1e-6)).all()
+    assert values[0, 0] > 1 and values[2, 0] <= 1

@@ -325,3 +325,49 @@ def test_a_malformed_stored_safe_plan_is_a_clear_error(key, value, message):
     td[key] = value
     with pytest.raises(ValueError, match=message):
         env.step(td)
+
+
+# ----------------------------------------------------------------- property, batched: one env's bad values stay its own
+VALUE_ENTRIES = ["state", "action", ("obstacles", "center"), ("obstacles", "generators")]
+
+
+@functools.lru_cache(maxsize=None)
+def _batched_start():
+    """A layer outside a ``SerialEnv`` of 2, and a TensorDict one verified step into the episodes."""
+    torch.set_num_threads(1)
+    env = TransformedEnv(SerialEnv(2, functools.partial(make_env, TASK, seed=0)), make_layer(TASK))
+    td = env.reset()
+    td["action"] = torch.tensor([[0.3, 0.0], [0.2, -0.1]])
+    td = env.step_mdp(env.step(td))
+    assert not td["brsl", "failsafe"].any()
+    return env, td
+
+
+@settings(max_examples=25, deadline=None, derandomize=True, suppress_health_check=list(HealthCheck))
+@given(st.integers(0, 1), st.sampled_from(VALUE_ENTRIES), st.integers(0, 10_000), st.sampled_from(VALUES))
+def test_property_batched_bad_values_are_flagged_where_they_are_and_nowhere_else(env_index, key, where, value):
+    """The layer serves both envs in one call: a bad value in one env is flagged there (and never executed),
+    and the other env's decision is exactly the one it gets without the edit."""
+    env, td = _batched_start()
+    td = td.clone()
+    reference = env.transform.inv(td.clone())
+    edited = td[key][env_index].clone().view(-1)
+    edited[where % edited.numel()] = value
+    td[key][env_index] = edited.view(td[key][env_index].shape)
+    if key[0] == "obstacles":  # only real obstacles count; which slot the entry is in:
+        slot = (where % edited.numel()) // (edited.numel() // td["obstacles", "mask"].shape[-1])
+        counts = bool(td["obstacles", "mask"][env_index, slot])
+    else:
+        counts = True
+    invalid = counts and (not torch.isfinite(torch.tensor(value)) or (key == "action" and abs(value) > 1.0))
+    out = env.transform.inv(td)
+    executed = out["action"]
+    assert torch.isfinite(executed).all()
+    assert torch.all(executed >= INFO.action_low) and torch.all(executed <= INFO.action_high)
+    if invalid:
+        assert out["brsl", "invalid_input"][env_index].item()
+    other = 1 - env_index
+    assert torch.equal(executed[other], reference["action"][other])
+    for name in ("intervened", "failsafe", "invalid_input", "unverified_hold"):
+        assert torch.equal(out["brsl", name][other], reference["brsl", name][other]), name
+    event("invalid, flagged" if invalid else "valid")

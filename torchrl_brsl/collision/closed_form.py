@@ -134,6 +134,11 @@ def finite_offsets(offsets: Tensor) -> tuple[Tensor, Tensor]:
     return torch.where(finite.unsqueeze(-1), offsets, torch.zeros_like(offsets)), finite
 
 
+WIDEN_SHARE = 1e-7
+"""Half-width of the box (a share of ``||[G1, G2]||_F``) that makes a flat pair full-dimensional: above
+the ``sqrt(eps) ≈ 1.5e-8`` of :func:`is_full_dimensional`, since ``s_max <= ||[G1, G2]||_F``."""
+
+
 class ZonotopeCollisionChecker:
     """Exact collision values of zonotope pairs with fixed generators, for many centres.
 
@@ -155,11 +160,15 @@ class ZonotopeCollisionChecker:
         set_generators: ``[..., n, p1]`` with ``n`` in {1, 2, 3}.
         obstacle_generators: ``[..., n, p2]``; batch shapes broadcast with ``set_generators``.
         deduplicate: see :func:`facet_table` (default ``True``).
+        widen: a pair whose ``Z(0, [G1, G2])`` is not full-dimensional (numerically: a 100 m
+            flat obstacle beside a set of 1e-6 m) gets a box of :data:`WIDEN_SHARE` of its size
+            added instead of raising; its value can then only be smaller (a larger set is
+            stricter), so a safety check stays sound and never fails mid-episode.
 
     Raises:
         ValueError: naming the argument, for non-tensors, non-floating or non-finite
             entries, mismatched dimensions or dtypes, batch shapes that do not broadcast,
-            ``n > 3``, or a pair whose ``Z(0, [G1, G2])`` is not full-dimensional.
+            ``n > 3``, or (without ``widen``) a pair whose ``Z(0, [G1, G2])`` is not full-dimensional.
 
     Examples:
         >>> box = torch.eye(2)
@@ -176,7 +185,8 @@ class ZonotopeCollisionChecker:
                 [ 7.,  4.]])
     """
 
-    def __init__(self, set_generators: Tensor, obstacle_generators: Tensor, *, deduplicate: bool = True):
+    def __init__(self, set_generators: Tensor, obstacle_generators: Tensor, *, deduplicate: bool = True,
+                 widen: bool = False):
         g1 = check_tensor("set_generators", set_generators, min_ndim=2).detach()
         g2 = check_tensor("obstacle_generators", obstacle_generators, min_ndim=2).detach()
         check_same_dtype_device(set_generators=g1, obstacle_generators=g2)
@@ -188,11 +198,15 @@ class ZonotopeCollisionChecker:
                 f"`obstacle_generators` must be [..., {n}, p2] like `set_generators`, got {tuple(g2.shape)}")
         batch = _broadcast("obstacle_generators", g2.shape[:-2], g1.shape[:-2])
         generators = torch.cat((g1.expand(*batch, *g1.shape[-2:]), g2.expand(*batch, *g2.shape[-2:])), dim=-1)
-        if not bool(is_full_dimensional(generators).all()):
-            raise ValueError(
-                "`set_generators` and `obstacle_generators`: Z(0, [G1, G2]) is not full-dimensional for some "
-                "pair; the closed form does not apply (use collision_value(..., backend='lp'))"
-            )
+        full = is_full_dimensional(generators)
+        if not bool(full.all()):
+            if not widen:
+                raise ValueError(
+                    "`set_generators` and `obstacle_generators`: Z(0, [G1, G2]) is not full-dimensional for some "
+                    "pair; the closed form does not apply (use collision_value(..., backend='lp'))"
+                )
+            radius = torch.where(full, 0.0, WIDEN_SHARE * generators.norm(dim=(-2, -1)))
+            generators = torch.cat((generators, torch.diag_embed(radius.unsqueeze(-1).expand(*radius.shape, n))), -1)
         self.table = facet_table(generators, deduplicate=deduplicate)
         self.batch_shape = batch
         self.dim = n

@@ -191,7 +191,7 @@ class PlanChecker:
         cached = self._obstacle_generators
         if cached is None or cached.shape != obstacle_generators.shape or not torch.equal(cached, obstacle_generators):
             self._checker = ZonotopeCollisionChecker(self.set_generators.unsqueeze(-3).unsqueeze(0),
-                                                     obstacle_generators.unsqueeze(-4))
+                                                     obstacle_generators.unsqueeze(-4), widen=True)
             self._columns = tuple(w.contiguous() for w in self._checker.table.weights.unbind(-1))
             self._obstacle_generators = obstacle_generators.clone()
         return self._checker
@@ -436,7 +436,7 @@ class PlanChecker:
         """Facet table of plan-dependent sets (projected, ``[B, T, d, ps]``) against the obstacles ``[B, K, d, p]``."""
         # used once per check: deduplicating its facets (O(K^2) per pair) costs more than it saves
         self._checker = ZonotopeCollisionChecker(projected.unsqueeze(-3), obstacle_generators.unsqueeze(-4),
-                                                 deduplicate=False)
+                                                 deduplicate=False, widen=True)
         self._columns = tuple(w.contiguous() for w in self._checker.table.weights.unbind(-1))
         self._obstacle_generators = None  # the cached table no longer matches any obstacle batch
 
