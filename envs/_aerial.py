@@ -77,8 +77,22 @@ class AerialTask(GoalTask):
     #: data region of the empty variant: ``|x|, |y| ≤ 10``, ``-4 ≤ z ≤ 8``
     data_region_low = np.array([-ARENA, -ARENA, -4.0])
     data_region_high = np.array([ARENA, ARENA, 8.0])
+    # the zero command stops either multirotor within 10 steps (for ``hexarotor_wind`` in any wind: the
+    # integral offset cancels the drag)
+    n_brk = 10
+    n_plan = 11
+    braking_action = np.zeros(3)
+    stop_tolerance = 0.05
     n_pillars: ClassVar[int]
     n_boxes: ClassVar[int]
+    mass: ClassVar[float]
+    n_rotors: ClassVar[int]
+
+    @classmethod
+    def model(cls, empty: bool, max_acceleration: float | None = MAX_ACCELERATION) -> str:
+        """The MJCF model of this multirotor (see :func:`aerial_model`)."""
+        return aerial_model(cls.name, empty, cls.n_pillars, cls.n_boxes, cls.robot_radius, cls.mass, cls.n_rotors,
+                            max_acceleration)
 
     def _bind(self, physics) -> None:
         model = physics.model

@@ -1,21 +1,23 @@
 """Task registry: :func:`make` and :func:`safety_info` by task name."""
 from __future__ import annotations
 
+import importlib
 import inspect
 from types import ModuleType
 
 from torchrl.envs import EnvBase
 
-from envs import diffdrive_nav, hexarotor_wind, point_boxes, point_circle, quadrotor_nav
 from envs._safety_info import SafetyInfo
+from envs._task import SafetyTask, task_environment
 from envs._wrapper import SafetyTaskEnv
+from envs.diffdrive_nav import DiffDriveNav
+from envs.hexarotor_wind import HexarotorWind
+from envs.point_boxes import PointBoxes
+from envs.point_circle import PointCircle
+from envs.quadrotor_nav import QuadrotorNav
 
-_TASKS: dict[str, ModuleType] = {
-    "point_circle": point_circle,
-    "diffdrive_nav": diffdrive_nav,
-    "quadrotor_nav": quadrotor_nav,
-    "hexarotor_wind": hexarotor_wind,
-    "point_boxes": point_boxes,
+_TASKS: dict[str, type[SafetyTask]] = {
+    task.name: task for task in (PointCircle, DiffDriveNav, QuadrotorNav, HexarotorWind, PointBoxes)
 }
 
 #: names accepted by :func:`make` and :func:`safety_info`
@@ -25,11 +27,25 @@ TASKS: tuple[str, ...] = tuple(_TASKS)
 _MAKE_ARGS = ("empty", "layout", "seed")
 
 
-def _module(name: str) -> ModuleType:
+def _task(name: str) -> type[SafetyTask]:
     try:
         return _TASKS[name]
     except KeyError:
         raise ValueError(f"unknown task {name!r}; choose one of {TASKS}") from None
+
+
+def _module(name: str) -> ModuleType:
+    """The module of task ``name``, with its ``build_environment``."""
+    return importlib.import_module(_task(name).__module__)
+
+
+def _keyword_options(function) -> set[str]:
+    return {p.name for p in inspect.signature(function).parameters.values() if p.kind is p.KEYWORD_ONLY}
+
+
+def _task_options(module: ModuleType) -> set[str]:
+    """The task's arguments of :func:`make`: its own and those of :func:`envs._task.task_environment`."""
+    return (_keyword_options(module.build_environment) | _keyword_options(task_environment)) - set(_MAKE_ARGS)
 
 
 def make(name: str, seed: int | None = 0, empty: bool = False, layout: int | None = None, **kwargs) -> EnvBase:
@@ -67,8 +83,7 @@ def make(name: str, seed: int | None = 0, empty: bool = False, layout: int | Non
         torch.Size([3, 1])
     """
     module = _module(name)
-    task_args = set(inspect.signature(module.build_environment).parameters) - set(_MAKE_ARGS)
-    task_kwargs = {key: kwargs.pop(key) for key in task_args if key in kwargs}
+    task_kwargs = {key: kwargs.pop(key) for key in _task_options(module) if key in kwargs}
     environment = module.build_environment(empty=empty, layout=layout, seed=seed, **task_kwargs)
     env = SafetyTaskEnv(environment, **kwargs)
     if seed is not None:
@@ -84,4 +99,4 @@ def safety_info(name: str) -> SafetyInfo:
         >>> envs.safety_info("diffdrive_nav").n_brk, envs.safety_info("diffdrive_nav").n_plan
         (6, 8)
     """
-    return _module(name).safety_info()
+    return _task(name).safety_info()

@@ -4,7 +4,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Callable
 
-import torch
 from torch import Tensor
 
 
@@ -44,7 +43,7 @@ class SafetyInfo:
         dt: control period in seconds.
 
     Examples:
-        >>> import envs
+        >>> import envs, torch
         >>> info = envs.safety_info("point_circle")
         >>> info.state_dim, info.position_dims, info.n_brk
         (4, (0, 1), 23)
@@ -80,23 +79,10 @@ class SafetyInfo:
             Bool tensor ``[...]``.
 
         Examples:
-            >>> import envs
+            >>> import envs, torch
             >>> info = envs.safety_info("quadrotor_nav")
             >>> info.is_stopped(torch.zeros(2, info.state_dim))
             tensor([True, True])
         """
         velocity = state[..., list(self.velocity_dims)]
         return velocity.abs().amax(-1) <= self.stop_tolerance
-
-
-def zero_command(state: Tensor, action_dim: int) -> Tensor:
-    """The braking policy of velocity-commanded robots: command zero velocity.
-
-    Args:
-        state: ``[..., n]``.
-        action_dim: ``m``.
-
-    Returns:
-        Zeros ``[..., m]`` with the dtype and device of ``state``.
-    """
-    return torch.zeros(*state.shape[:-1], action_dim, dtype=state.dtype, device=state.device)

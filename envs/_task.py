@@ -11,7 +11,7 @@ Safety-Gymnasium wrapper exposes it for constrained RL.
 from __future__ import annotations
 
 import collections
-from typing import ClassVar
+from typing import Callable, ClassVar
 
 import mujoco
 import numpy as np
@@ -27,6 +27,11 @@ from envs._safety_info import SafetyInfo
 
 class SafetyTask(base.Task):
     """Base task: a robot among obstacles with process noise.
+
+    The class attributes describe the task; :meth:`safety_info` hands the safety layer's share of
+    them on as a :class:`SafetyInfo`, whose attributes of the same names document them
+    (``n_brk``, ``n_plan``, ``braking_action``, :meth:`braking_policy`, ``stop_tolerance``, ...).
+    ``episode_steps`` is the default time limit of :func:`task_environment`.
 
     Args:
         empty: no obstacles (obstacle mask all False); episodes are truncated when
@@ -55,6 +60,11 @@ class SafetyTask(base.Task):
     velocity_dims: ClassVar[tuple[int, ...]]
     heading_dims: ClassVar[tuple[int, ...]] = ()
     obstacle_kinds: ClassVar[tuple[str, ...]]
+    episode_steps: ClassVar[int]
+    n_brk: ClassVar[int]
+    n_plan: ClassVar[int]
+    braking_action: ClassVar[np.ndarray]
+    stop_tolerance: ClassVar[float]
 
     def __init__(
         self,
@@ -206,10 +216,21 @@ class SafetyTask(base.Task):
         return zonotope_batch(obstacles, self.robot_radius, self.obstacle_dim, self.capacity)
 
     @classmethod
-    def safety_info(
-        cls, *, n_brk: int, n_plan: int, braking_action, braking_policy, stop_tolerance: float
-    ) -> SafetyInfo:
-        """Builds the task's :class:`SafetyInfo` from its class constants."""
+    def braking_policy(cls, state: torch.Tensor) -> torch.Tensor:
+        """Stops the robot within ``n_brk`` steps: here by holding ``braking_action`` (velocity commands).
+
+        Args:
+            state: ``[..., n]``.
+
+        Returns:
+            Actions ``[..., m]`` with the dtype and device of ``state``.
+        """
+        action = torch.as_tensor(cls.braking_action, dtype=state.dtype, device=state.device)
+        return action.expand(*state.shape[:-1], -1).clone()
+
+    @classmethod
+    def safety_info(cls) -> SafetyInfo:
+        """The task's :class:`SafetyInfo`, from its class attributes."""
 
         def as_tensor(array) -> torch.Tensor:
             return torch.as_tensor(np.asarray(array), dtype=torch.float32)
@@ -225,11 +246,11 @@ class SafetyTask(base.Task):
             action_high=as_tensor(cls.action_high),
             noise_center=as_tensor(cls.noise_center),
             noise_generators=as_tensor(cls.noise_generators),
-            n_brk=n_brk,
-            n_plan=n_plan,
-            braking_action=as_tensor(braking_action),
-            braking_policy=braking_policy,
-            stop_tolerance=float(stop_tolerance),
+            n_brk=cls.n_brk,
+            n_plan=cls.n_plan,
+            braking_action=as_tensor(cls.braking_action),
+            braking_policy=cls.braking_policy,
+            stop_tolerance=float(cls.stop_tolerance),
             dt=cls.dt,
             heading_dims=tuple(cls.heading_dims),
         )
@@ -293,11 +314,35 @@ class GoalTask(SafetyTask):
         )
 
 
-def task_environment(xml: str, task: SafetyTask, episode_steps: int, n_sub_steps: int) -> control.Environment:
-    """The dm_control environment running ``task`` on the MJCF model ``xml``.
+def task_environment(
+    task: type[SafetyTask],
+    model: Callable[..., str],
+    *,
+    empty: bool = False,
+    layout: int | None = None,
+    seed=None,
+    episode_steps: int | None = None,
+    terminate_on_collision: bool = True,
+    **model_options,
+) -> control.Environment:
+    """The dm_control environment of a task: what every task module's ``build_environment`` does.
 
-    Episodes last ``episode_steps`` control steps of ``task.dt`` each, simulated in
-    ``n_sub_steps`` physics steps.
+    Args:
+        task: the task class.
+        model: ``model(empty, **model_options)``, the MJCF model of the task; its timestep sets the
+            physics steps per control step of ``task.dt``.
+        empty: the obstacle-free variant for offline data collection.
+        layout: fixed evaluation layout index, or None for a layout drawn each episode.
+        seed: seed of the task's random state.
+        episode_steps: time limit in control steps (``None``: ``task.episode_steps``).
+        terminate_on_collision: end the episode on a collision.
+        **model_options: the task's own options, for ``model``.
+
+    Returns:
+        A ``dm_control.rl.control.Environment``.
     """
-    return control.Environment(dm_mujoco.Physics.from_xml_string(xml), task,
-                               time_limit=(episode_steps - 0.5) * task.dt, n_sub_steps=n_sub_steps)
+    physics = dm_mujoco.Physics.from_xml_string(model(empty, **model_options))
+    instance = task(empty=empty, layout=layout, terminate_on_collision=terminate_on_collision, random=seed)
+    steps = task.episode_steps if episode_steps is None else episode_steps
+    return control.Environment(physics, instance, time_limit=(steps - 0.5) * task.dt,
+                               n_sub_steps=round(task.dt / physics.timestep()))

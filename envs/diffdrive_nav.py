@@ -27,7 +27,7 @@
   Measured braking (zero command): 5 steps from full forward speed, 6 from ``(0.25, ±0.5)``, 1 from
   a pure full turn; at most 6 from 400 random reachable states. Process noise kicks the chassis
   and spins the wheels along (rolling), so it changes ``v`` and ``ω`` by exactly the noise.
-  Same spaces, noise, :func:`safety_info` and layouts as the kinematic robot; about half its steps/s.
+  Same spaces, noise, :func:`envs.safety_info` and layouts as the kinematic robot; about half its steps/s.
 * State ``(x, y, cos θ, sin θ, v, ω)`` with ``v`` the body-frame forward speed;
   process noise ``U[-0.005, 0.005]`` m/s on ``v`` and ``U[-0.01, 0.01]`` rad/s on ``ω``.
 * Observation (23): 18 lidar ranges over the front 180° divided by the 3.5 m range,
@@ -41,15 +41,12 @@
 """
 from __future__ import annotations
 
-import functools
-
 import numpy as np
 from dm_control.rl import control
 
 from envs._lidar import Lidar, planar_fan
 from envs._mjcf import model_xml, with_actuators
 from envs._obstacles import KeepOut, Layout, Obstacle, boundary_walls, obstacle_bodies_xml, place_obstacles
-from envs._safety_info import SafetyInfo, zero_command
 from envs._task import GoalTask, task_environment
 
 ARENA = 2.5
@@ -111,6 +108,11 @@ class DiffDriveNav(GoalTask):
     velocity_dims = (4, 5)
     obstacle_kinds = ("box",) * 4 + ("cylinder",) * _N_CYLINDERS + ("box",) * _N_BOXES
     progress_scale = 10.0
+    episode_steps = 300
+    n_brk = 6  # either robot, from any reachable speed, with the default acceleration limits
+    n_plan = 8
+    braking_action = np.zeros(2)
+    stop_tolerance = 0.02
 
     def _bind(self, physics) -> None:
         self._lidar = Lidar(planar_fan(N_LIDAR, np.pi), LIDAR_RANGE, physics.model.name2id("robot", "body"))
@@ -313,23 +315,14 @@ def _wheeled_model(empty: bool) -> str:
 
 def build_environment(
     *,
-    empty: bool = False,
-    layout: int | None = None,
-    seed=None,
-    episode_steps: int = 300,
-    terminate_on_collision: bool = True,
     max_acceleration: float | None = MAX_ACCELERATION,
     max_turn_acceleration: float | None = MAX_TURN_ACCELERATION,
     robot: str = "kinematic",
+    **options,
 ) -> control.Environment:
     """The dm_control environment of ``diffdrive_nav``.
 
     Args:
-        empty: the obstacle-free variant for offline data collection.
-        layout: fixed evaluation layout index, or None for a random layout per episode.
-        seed: seed of the task's random state.
-        episode_steps: time limit in steps of 0.1 s.
-        terminate_on_collision: end the episode on a collision.
         max_acceleration: forward acceleration limit of the speed servo (m/s^2); ``None``
             removes it.
         max_turn_acceleration: yaw acceleration limit of the turn servo (rad/s^2); ``None``
@@ -337,6 +330,8 @@ def build_environment(
         robot: ``"kinematic"`` (chassis velocity servos) or ``"wheeled"`` (driven wheels with
             contact friction and their own ramped controller; the two limits above are for the
             kinematic robot only).
+        **options: those of :func:`envs._task.task_environment`: ``empty``, ``layout``, ``seed``,
+            ``episode_steps`` (default 300) and ``terminate_on_collision``.
 
     Returns:
         A ``dm_control.rl.control.Environment``.
@@ -352,23 +347,10 @@ def build_environment(
     """
     if robot not in ROBOTS:
         raise ValueError(f"unknown robot {robot!r} for diffdrive_nav; choose one of {ROBOTS}")
-    options = dict(empty=empty, layout=layout, terminate_on_collision=terminate_on_collision, random=seed)
     if robot == "kinematic":
-        xml = _model(empty, max_acceleration, max_turn_acceleration)
-        return task_environment(xml, DiffDriveNav(**options), episode_steps, n_sub_steps=5)
+        return task_environment(DiffDriveNav, _model, max_acceleration=max_acceleration,
+                                max_turn_acceleration=max_turn_acceleration, **options)
     if (max_acceleration, max_turn_acceleration) != (MAX_ACCELERATION, MAX_TURN_ACCELERATION):
         raise ValueError("max_acceleration and max_turn_acceleration apply to robot='kinematic' only; the wheeled "
                          f"robot ramps its wheels at {WHEEL_ACCELERATION} rad/s^2")
-    n_sub_steps = round(DiffDriveNav.dt / WHEELED_TIMESTEP)
-    return task_environment(_wheeled_model(empty), WheeledDiffDriveNav(**options), episode_steps, n_sub_steps)
-
-
-def safety_info() -> SafetyInfo:
-    """The :class:`SafetyInfo` of ``diffdrive_nav``, for either robot (the wheeled one also brakes within 6 steps)."""
-    return DiffDriveNav.safety_info(
-        n_brk=6,
-        n_plan=8,
-        braking_action=np.zeros(2),
-        braking_policy=functools.partial(zero_command, action_dim=2),
-        stop_tolerance=0.02,
-    )
+    return task_environment(WheeledDiffDriveNav, _wheeled_model, **options)

@@ -32,14 +32,12 @@
 from __future__ import annotations
 
 import dataclasses
-import functools
 
 import numpy as np
 from dm_control.rl import control
 
-from envs._aerial import ARENA, MAX_ACCELERATION, N_BOUNDARY, AerialTask, aerial_model, boundary, draw_obstacle
+from envs._aerial import ARENA, MAX_ACCELERATION, N_BOUNDARY, AerialTask, boundary, draw_obstacle
 from envs._obstacles import KeepOut, Layout, Obstacle, place_obstacles
-from envs._safety_info import SafetyInfo, zero_command
 from envs._task import task_environment
 
 N_CHECKPOINTS = 10
@@ -91,6 +89,11 @@ class HexarotorWind(AerialTask):
     start = np.array([0.0, 0.0, RING_HEIGHT])
     noise_center = np.zeros(9)
     noise_generators = np.concatenate([AerialTask.noise_generators, np.zeros((3, 3))])
+    episode_steps = 400
+    n_pillars = _N_PILLARS
+    n_boxes = _N_BOXES
+    mass = 2.0
+    n_rotors = 6
 
     def _new_layout(self, rng):
         goals = checkpoints()
@@ -154,26 +157,16 @@ class HexarotorWind(AerialTask):
         )
 
 
-def build_environment(
-    *,
-    empty: bool = False,
-    layout: int | None = None,
-    seed=None,
-    episode_steps: int = 400,
-    terminate_on_collision: bool = True,
-    max_acceleration: float | None = MAX_ACCELERATION,
-) -> control.Environment:
+def build_environment(*, max_acceleration: float | None = MAX_ACCELERATION, **options) -> control.Environment:
     """The dm_control environment of ``hexarotor_wind``.
 
     Args:
-        empty: the obstacle-free variant for offline data collection (wind stays).
-        layout: fixed evaluation layout index (obstacles and wind), or None.
-        seed: seed of the task's random state.
-        episode_steps: time limit in steps of 0.1 s.
-        terminate_on_collision: end the episode on a collision.
         max_acceleration: force limit of the velocity servos per unit mass (m/s^2).
             ``None`` removes it: the servos are then linear (see :mod:`envs._aerial`),
             and the zero command still stops the robot within ``n_brk`` steps.
+        **options: those of :func:`envs._task.task_environment`: ``empty`` (the wind stays), ``layout``
+            (fixes the obstacles and the wind), ``seed``, ``episode_steps`` (default 400) and
+            ``terminate_on_collision``.
 
     Returns:
         A ``dm_control.rl.control.Environment``.
@@ -183,25 +176,4 @@ def build_environment(
         >>> env.reset().observation["obstacles_center"].shape
         (14, 3)
     """
-    xml = aerial_model(
-        "hexarotor_wind", empty, _N_PILLARS, _N_BOXES, HexarotorWind.robot_radius, mass=2.0, n_rotors=6,
-        max_acceleration=max_acceleration,
-    )
-    task = HexarotorWind(
-        empty=empty, layout=layout, terminate_on_collision=terminate_on_collision, random=seed
-    )
-    return task_environment(xml, task, episode_steps, n_sub_steps=5)
-
-
-def safety_info() -> SafetyInfo:
-    """The :class:`SafetyInfo` of ``hexarotor_wind``.
-
-    The zero command stops the robot in any wind: the integral offset cancels the drag.
-    """
-    return HexarotorWind.safety_info(
-        n_brk=10,
-        n_plan=11,
-        braking_action=np.zeros(3),
-        braking_policy=functools.partial(zero_command, action_dim=3),
-        stop_tolerance=0.05,
-    )
+    return task_environment(HexarotorWind, HexarotorWind.model, max_acceleration=max_acceleration, **options)

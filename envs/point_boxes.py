@@ -30,15 +30,12 @@ so that a safety layer has something to prevent.
 """
 from __future__ import annotations
 
-import functools
-
 import numpy as np
 from dm_control.rl import control
 
 from envs._lidar import Lidar, rings
 from envs._mjcf import model_xml, with_actuators
 from envs._obstacles import Layout, Obstacle, boundary_walls, obstacle_bodies_xml
-from envs._safety_info import SafetyInfo, zero_command
 from envs._task import SafetyTask, task_environment
 
 ARENA = 1.5
@@ -112,6 +109,14 @@ class PointBoxes(SafetyTask):
     position_dims = (0, 1)
     velocity_dims = (2, 3)
     obstacle_kinds = ("box",) * (4 + N_BOXES[1])
+    episode_steps = 80
+    # Braking from ``|v| = 1.01`` m/s per axis: 0.15 s at the 5 m/s^2 limit, then the servo removes 40 % of
+    # the rest per 0.02 s physics step, leaving ≤ 0.006 m/s after 3 steps, plus ≤ 0.01 m/s of noise from the
+    # last step and ≤ 0.001 m/s from the one before (tested against the stop tolerance).
+    n_brk = 3
+    n_plan = 6
+    braking_action = np.zeros(2)
+    stop_tolerance = 0.05
 
     def _bind(self, physics) -> None:
         self._lidar = Lidar(rings(N_LIDAR, np.zeros(1)), LIDAR_RANGE, physics.model.name2id("robot", "body"))
@@ -187,28 +192,17 @@ def _model(empty: bool, max_acceleration: float | None) -> str:
     return with_actuators(xml, actuators)
 
 
-def build_environment(
-    *,
-    empty: bool = False,
-    layout: int | None = None,
-    seed=None,
-    episode_steps: int = 80,
-    terminate_on_collision: bool = True,
-    max_acceleration: float | None = MAX_ACCELERATION,
-) -> control.Environment:
+def build_environment(*, max_acceleration: float | None = MAX_ACCELERATION, **options) -> control.Environment:
     """The dm_control environment of ``point_boxes``.
 
     Args:
-        empty: the obstacle-free variant for offline data collection.
-        layout: fixed evaluation layout index (the boxes), or None for random boxes per episode.
-        seed: seed of the task's random state.
-        episode_steps: time limit in steps of 0.1 s.
-        terminate_on_collision: end the episode on a collision.
         max_acceleration: force limit of the servos per unit mass (m/s^2). ``None``
             removes it: the servos are then linear, and so is a whole control step
             away from contacts, ``(vx, vy)+ = a (vx, vy) + (1 - a) u`` with
             ``a = 0.6^5 ≈ 0.078`` (explicit Euler), plus the noise. The zero command
             still stops the robot within ``n_brk`` steps.
+        **options: those of :func:`envs._task.task_environment`: ``empty``, ``layout`` (fixes the
+            boxes), ``seed``, ``episode_steps`` (default 80) and ``terminate_on_collision``.
 
     Returns:
         A ``dm_control.rl.control.Environment``.
@@ -218,22 +212,4 @@ def build_environment(
         >>> bool(env.reset().observation["obstacles_mask"].any())
         False
     """
-    task = PointBoxes(empty=empty, layout=layout, terminate_on_collision=terminate_on_collision, random=seed)
-    return task_environment(_model(empty, max_acceleration), task, episode_steps, n_sub_steps=5)
-
-
-def safety_info() -> SafetyInfo:
-    """The :class:`SafetyInfo` of ``point_boxes``.
-
-    Braking from ``|v| = 1.01`` m/s per axis: 0.15 s at the 5 m/s^2 limit, then the
-    servo removes 40 % of the rest per 0.02 s physics step, leaving ≤ 0.006 m/s after
-    3 steps, plus ≤ 0.01 m/s of noise from the last step and ≤ 0.001 m/s from the one
-    before (tested against ``stop_tolerance = 0.05``).
-    """
-    return PointBoxes.safety_info(
-        n_brk=3,
-        n_plan=6,
-        braking_action=np.zeros(2),
-        braking_policy=functools.partial(zero_command, action_dim=2),
-        stop_tolerance=0.05,
-    )
+    return task_environment(PointBoxes, _model, max_acceleration=max_acceleration, **options)

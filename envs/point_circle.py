@@ -26,7 +26,6 @@ from dm_control.rl import control
 
 from envs._mjcf import model_xml, with_actuators
 from envs._obstacles import Layout, boundary_walls, obstacle_bodies_xml
-from envs._safety_info import SafetyInfo
 from envs._task import SafetyTask, task_environment
 
 PATH_RADIUS = 2.0
@@ -61,6 +60,27 @@ class PointCircle(SafetyTask):
     position_dims = (0, 1)
     velocity_dims = (2, 3)
     obstacle_kinds = ("box",) * 4
+    episode_steps = 200
+    n_brk = 23
+    n_plan = 25
+    braking_action = np.zeros(2)
+    stop_tolerance = 0.02
+
+    @classmethod
+    def braking_policy(cls, state):
+        """``a = clip(-v / dt, -1, 1)`` per axis.
+
+        Worst case with noise: while saturated each step removes at least
+        ``0.1 - 0.01`` m/s, so from ``|v_i| ≤ 2.01`` the speed is below 0.1 m/s after 22
+        steps and within the noise (``≤ 0.01`` m/s per axis) after the 23rd: ``n_brk = 23``.
+
+        Args:
+            state: ``[..., 4]`` states ``(x, y, ẋ, ẏ)``.
+
+        Returns:
+            Accelerations ``[..., 2]``.
+        """
+        return (-state[..., 2:4] / cls.dt).clamp(-MAX_ACCELERATION, MAX_ACCELERATION)
 
     def _bind(self, physics) -> None:
         self._mass = float(physics.model.body_subtreemass[physics.model.name2id("robot", "body")])
@@ -134,23 +154,14 @@ def _model(empty: bool) -> str:
     )
 
 
-def build_environment(
-    *,
-    empty: bool = False,
-    layout: int | None = None,
-    seed=None,
-    episode_steps: int = 200,
-    terminate_on_collision: bool = True,
-) -> control.Environment:
+def build_environment(**options) -> control.Environment:
     """The dm_control environment of ``point_circle``.
 
     Args:
-        empty: the obstacle-free variant for offline data collection.
-        layout: fixed evaluation layout index (sets the start position), or None.
-        seed: seed of the task's random state.
-        episode_steps: time limit in steps of 0.1 s.
-        terminate_on_collision: end the episode when the robot touches a wall, i.e. leaves
-            the safe set (False: the episode goes on, the robot may cross the walls).
+        **options: those of :func:`envs._task.task_environment`: ``empty``, ``layout`` (sets the start
+            position), ``seed``, ``episode_steps`` (default 200) and ``terminate_on_collision`` (True:
+            the episode ends when the robot touches a wall, i.e. leaves the safe set; False: it goes
+            on, the robot may cross the walls).
 
     Returns:
         A ``dm_control.rl.control.Environment``.
@@ -160,35 +171,4 @@ def build_environment(
         >>> env.step(np.array([1.0, 0.0])).step_type.name
         'FIRST'
     """
-    task = PointCircle(
-        empty=empty, layout=layout, terminate_on_collision=terminate_on_collision, random=seed
-    )
-    return task_environment(_model(empty), task, episode_steps, n_sub_steps=2)
-
-
-def braking_policy(state, dt: float = PointCircle.dt):
-    """``a = clip(-v / dt, -1, 1)`` per axis.
-
-    Worst case with noise: while saturated each step removes at least
-    ``0.1 - 0.01`` m/s, so from ``|v_i| ≤ 2.01`` the speed is below 0.1 m/s after 22
-    steps and within the noise (``≤ 0.01`` m/s per axis) after the 23rd: ``n_brk = 23``.
-
-    Args:
-        state: ``[..., 4]`` states ``(x, y, ẋ, ẏ)``.
-        dt: control period.
-
-    Returns:
-        Accelerations ``[..., 2]``.
-    """
-    return (-state[..., 2:4] / dt).clamp(-MAX_ACCELERATION, MAX_ACCELERATION)
-
-
-def safety_info() -> SafetyInfo:
-    """The :class:`SafetyInfo` of ``point_circle``."""
-    return PointCircle.safety_info(
-        n_brk=23,
-        n_plan=25,
-        braking_action=np.zeros(2),
-        braking_policy=braking_policy,
-        stop_tolerance=0.02,
-    )
+    return task_environment(PointCircle, _model, **options)

@@ -16,14 +16,11 @@
 """
 from __future__ import annotations
 
-import functools
-
 import numpy as np
 from dm_control.rl import control
 
-from envs._aerial import ARENA, MAX_ACCELERATION, N_BOUNDARY, AerialTask, aerial_model, boundary, draw_obstacle
+from envs._aerial import ARENA, MAX_ACCELERATION, N_BOUNDARY, AerialTask, boundary, draw_obstacle
 from envs._obstacles import KeepOut, Layout, place_obstacles
-from envs._safety_info import SafetyInfo, zero_command
 from envs._task import task_environment
 
 GOAL_RADIUS = 0.75
@@ -46,6 +43,11 @@ class QuadrotorNav(AerialTask):
     robot_radius = 0.3
     observation_dim = 16 + 3 + 3
     obstacle_kinds = ("box",) * N_BOUNDARY + ("cylinder",) * _N_PILLARS + ("box",) * _N_BOXES
+    episode_steps = 200
+    n_pillars = _N_PILLARS
+    n_boxes = _N_BOXES
+    mass = 1.0
+    n_rotors = 4
 
     def _new_layout(self, rng):
         angle, distance = rng.uniform(0, 2 * np.pi), rng.uniform(5.0, 8.5)
@@ -76,26 +78,15 @@ class QuadrotorNav(AerialTask):
         )
 
 
-def build_environment(
-    *,
-    empty: bool = False,
-    layout: int | None = None,
-    seed=None,
-    episode_steps: int = 200,
-    terminate_on_collision: bool = True,
-    max_acceleration: float | None = MAX_ACCELERATION,
-) -> control.Environment:
+def build_environment(*, max_acceleration: float | None = MAX_ACCELERATION, **options) -> control.Environment:
     """The dm_control environment of ``quadrotor_nav``.
 
     Args:
-        empty: the obstacle-free variant for offline data collection.
-        layout: fixed evaluation layout index, or None for a random layout per episode.
-        seed: seed of the task's random state.
-        episode_steps: time limit in steps of 0.1 s.
-        terminate_on_collision: end the episode on a collision.
         max_acceleration: force limit of the velocity servos per unit mass (m/s^2).
             ``None`` removes it: the servos are then linear (see :mod:`envs._aerial`),
             and the zero command still stops the robot within ``n_brk`` steps.
+        **options: those of :func:`envs._task.task_environment`: ``empty``, ``layout``, ``seed``,
+            ``episode_steps`` (default 200) and ``terminate_on_collision``.
 
     Returns:
         A ``dm_control.rl.control.Environment``.
@@ -105,22 +96,4 @@ def build_environment(
         >>> bool(env.reset().observation["obstacles_mask"].any())
         False
     """
-    xml = aerial_model(
-        "quadrotor_nav", empty, _N_PILLARS, _N_BOXES, QuadrotorNav.robot_radius, mass=1.0, n_rotors=4,
-        max_acceleration=max_acceleration,
-    )
-    task = QuadrotorNav(
-        empty=empty, layout=layout, terminate_on_collision=terminate_on_collision, random=seed
-    )
-    return task_environment(xml, task, episode_steps, n_sub_steps=5)
-
-
-def safety_info() -> SafetyInfo:
-    """The :class:`SafetyInfo` of ``quadrotor_nav``."""
-    return QuadrotorNav.safety_info(
-        n_brk=10,
-        n_plan=11,
-        braking_action=np.zeros(3),
-        braking_policy=functools.partial(zero_command, action_dim=3),
-        stop_tolerance=0.05,
-    )
+    return task_environment(QuadrotorNav, QuadrotorNav.model, max_acceleration=max_acceleration, **options)

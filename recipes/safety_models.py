@@ -3,9 +3,10 @@ and the layer itself."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 from omegaconf import DictConfig
+from torch import Tensor
 
 import envs
 from recipes.tasks import local_domain, offline_data
@@ -52,28 +53,50 @@ class SafetyModels(NamedTuple):
                    DataDrivenReach.load(local) if local.exists() else None)
 
 
-def horizon(cfg: DictConfig) -> tuple[int, int]:
-    """``(n_plan, n_brk)``: the task's SafetyInfo unless the task config overrides them.
+class LayerSettings(NamedTuple):
+    """What the layer takes from the task: its SafetyInfo, with the plan and braking lengths resolved."""
+
+    n_plan: int
+    n_brk: int
+    braking_action: Tensor
+    braking_policy: Callable[[Tensor], Tensor] | None
+    stop_dims: tuple[int, ...]
+    action_low: Tensor
+    action_high: Tensor
+
+
+def layer_settings(cfg: DictConfig) -> LayerSettings:
+    """The task's SafetyInfo, where the task config's ``safety`` section overrides ``n_plan`` and ``n_brk``
+    (``null``: the task's), with the braking policy when ``safety.braking`` is ``policy``.
 
     Without a planner the proposal is one action, so ``n_plan = 1``: the layer checks that
     action and the braking tail, ``1 + n_brk`` sets, rather than sets that keep growing
     after the robot has stopped.
     """
     info = envs.safety_info(cfg.task.name)
-    n_plan = 1 if cfg.method.get("planner", "none") == "none" else cfg.task.safety.get("n_plan") or info.n_plan
-    n_brk = cfg.task.safety.get("n_brk") or info.n_brk
-    return int(n_plan), int(n_brk)
+    safety = cfg.task.safety
+
+    def resolved(key: str) -> int:
+        return int(getattr(info, key) if safety.get(key) is None else safety.get(key))
+
+    return LayerSettings(
+        n_plan=1 if cfg.method.get("planner", "none") == "none" else resolved("n_plan"), n_brk=resolved("n_brk"),
+        braking_action=info.braking_action, braking_policy=info.braking_policy if safety.braking == "policy" else None,
+        stop_dims=info.velocity_dims, action_low=info.action_low, action_high=info.action_high)
+
+
+def horizon(cfg: DictConfig) -> tuple[int, int]:
+    """``(n_plan, n_brk)`` of :func:`layer_settings`."""
+    settings = layer_settings(cfg)
+    return settings.n_plan, settings.n_brk
 
 
 def make_layer(cfg: DictConfig, models: SafetyModels) -> BRSLSafetyLayer:
-    """The safety layer with the task's SafetyInfo; stopped = final centre within the slack of rest."""
-    info = envs.safety_info(cfg.task.name)
-    reach = models.reach
-    n_plan, n_brk = horizon(cfg)
-    braking = info.braking_policy if cfg.task.safety.braking == "policy" else None
+    """The safety layer with the task's :func:`layer_settings`; stopped = final centre within the slack of rest."""
+    settings = layer_settings(cfg)
     adjuster = None if cfg.method.adjuster == "none" else cfg.method.adjuster  # the layer's registry checks the name
     return BRSLSafetyLayer(
-        reach, Failsafe(info.braking_action, n_brk, policy=braking), n_plan, stop_dims=info.velocity_dims,
-        stop_slack=cfg.method.stop_slack, action_low=info.action_low,
-        action_high=info.action_high, adjuster=adjuster, penalty=cfg.method.penalty,
-        local_reach=models.local)
+        models.reach, Failsafe(settings.braking_action, settings.n_brk, policy=settings.braking_policy),
+        settings.n_plan, stop_dims=settings.stop_dims, stop_slack=cfg.method.stop_slack,
+        action_low=settings.action_low, action_high=settings.action_high, adjuster=adjuster,
+        penalty=cfg.method.penalty, local_reach=models.local)

@@ -15,9 +15,9 @@ from torchrl_brsl.reach import collect_offline_data, load_offline_data, save_off
 
 
 def make_base_env(task: DictConfig, seed: int, *, layout: int | None = None, empty: bool = False, **kwargs):
-    """``envs.make`` with the task options of the config (``task.env``, ``task.episode_steps``)."""
+    """``envs.make`` with the task options of the config (``task.env``, ``task.episode_steps`` unless null)."""
     options = dict(OmegaConf.to_container(task.env, resolve=True) or {})
-    if not empty and task.get("episode_steps"):
+    if not empty and task.get("episode_steps") is not None:
         options["episode_steps"] = int(task.episode_steps)
     options.update(kwargs)
     return envs.make(task.name, seed=seed, empty=empty, layout=layout, **options)

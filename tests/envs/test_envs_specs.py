@@ -1,11 +1,21 @@
 """Specs, keys, shapes and the SafetyInfo of every task."""
+import dataclasses
+
 import pytest
 import torch
 from torchrl.envs.utils import check_env_specs
 
 import envs
 from envs._obstacles import GENERATORS_PER_OBSTACLE
+from envs._safety_info import SafetyInfo
+from envs.diffdrive_nav import DiffDriveNav
+from envs.hexarotor_wind import HexarotorWind
+from envs.point_boxes import PointBoxes
+from envs.point_circle import PointCircle
+from envs.quadrotor_nav import QuadrotorNav
 
+TASK_CLASSES = {"point_circle": PointCircle, "diffdrive_nav": DiffDriveNav, "quadrotor_nav": QuadrotorNav,
+                "hexarotor_wind": HexarotorWind, "point_boxes": PointBoxes}
 
 CAPACITY = {"point_circle": 4, "diffdrive_nav": 12, "quadrotor_nav": 18, "hexarotor_wind": 14, "point_boxes": 10}
 OBSERVATION_DIM = {"point_circle": 5, "diffdrive_nav": 23, "quadrotor_nav": 22, "hexarotor_wind": 26, "point_boxes": 12}
@@ -86,6 +96,22 @@ def test_safety_info_is_consistent_with_the_env(name):
     moving = torch.zeros(info.state_dim)
     moving[info.velocity_dims[0]] = 2 * info.stop_tolerance
     assert not info.is_stopped(moving)
+
+
+@pytest.mark.parametrize("name", envs.TASKS)
+def test_safety_info_constants_are_the_task_class_attributes(name):
+    task, info = TASK_CLASSES[name], envs.safety_info(name)
+    assert (info.state_dim, info.action_dim) == (len(task.noise_center), len(task.action_low))
+    for field in dataclasses.fields(SafetyInfo):
+        if field.name in ("state_dim", "action_dim", "braking_policy"):
+            continue
+        value, expected = getattr(info, field.name), getattr(task, field.name)
+        if isinstance(value, torch.Tensor):
+            assert torch.equal(value, torch.as_tensor(expected, dtype=torch.float32)), field.name
+        else:
+            assert value == expected, field.name
+    state = torch.randn(5, info.state_dim)
+    assert torch.equal(info.braking_policy(state), task.braking_policy(state))
 
 
 def test_point_braking_policy_values():

@@ -9,8 +9,10 @@ import torch
 from recipes.compare import compare
 from recipes.evaluate import evaluate_run, main as evaluate_main
 from recipes.runs import load_run, read_scalar
-from recipes.safety_models import horizon
+import envs
+from recipes.safety_models import horizon, layer_settings
 from recipes.setup import compose_config
+from recipes.tasks import make_base_env
 from recipes.train import train
 from torchrl_brsl.reach import BodyFrame
 
@@ -161,6 +163,29 @@ def test_without_a_planner_the_layer_checks_one_action_and_the_braking_tail():
     assert horizon(compose_config(["task=diffdrive_nav"])) == (1, 6)
     assert horizon(compose_config(["task=diffdrive_nav", "method.planner=ensemble"])) == (8, 6)
     assert horizon(compose_config(["task=point_circle", "method.planner=ensemble"])) == (5, 12)
+
+
+#: the overrides of the task's SafetyInfo that the default task configs document: (n_plan, n_brk)
+CONFIG_OVERRIDES = {"point_circle": (5, 12)}
+
+
+@pytest.mark.parametrize("planner", ["none", "ensemble"])
+@pytest.mark.parametrize("task", envs.TASKS)
+def test_the_layer_settings_of_the_default_configs_are_the_task_safety_info(task, planner):
+    settings = layer_settings(compose_config([f"task={task}", f"method.planner={planner}"]))
+    info = envs.safety_info(task)
+    n_plan, n_brk = CONFIG_OVERRIDES.get(task, (info.n_plan, info.n_brk))
+    assert (settings.n_plan, settings.n_brk) == (1 if planner == "none" else n_plan, n_brk)
+    assert settings.stop_dims == info.velocity_dims
+    for key in ("braking_action", "action_low", "action_high"):
+        assert torch.equal(getattr(settings, key), getattr(info, key)), key
+    assert settings.braking_policy == (info.braking_policy if task == "point_circle" else None)
+
+
+@pytest.mark.parametrize("task", envs.TASKS)
+def test_the_default_configs_keep_the_task_episode_length(task):
+    env = make_base_env(compose_config([f"task={task}"]).task, seed=0)
+    assert env._env._step_limit == pytest.approx(envs._registry._task(task).episode_steps - 0.5)
 
 
 def test_collector_processes(tmp_path):
