@@ -46,7 +46,7 @@ def main(argv=None) -> None:
                           stop_dims=(2, 3), stop_slack=0.1, action_low=system.action_low,
                           action_high=system.action_high)
     obstacles = Obstacles(obstacle.center.view(1, 1, 2), obstacle.generators.view(1, 1, 2, 2),
-                          torch.ones(1, 1, dtype=torch.bool), batch_size=[1])
+                          torch.ones(1, 1, dtype=torch.bool))
     before = checker.evaluate(x0[None], plan[None], obstacles)
     adjusted = GradientAdjuster(max_iterations=200, time_budget=None)(checker, x0[None], plan[None], obstacles)
 

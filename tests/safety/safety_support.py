@@ -52,7 +52,7 @@ def make_layer(task: str, **kwargs) -> BRSLSafetyLayer:
 
 def obstacles_of(centers, generators, mask) -> Obstacles:
     """The :class:`Obstacles` of loose ``center [B, K, d]``, ``generators [B, K, d, p]`` and ``mask [B, K]``."""
-    return Obstacles(centers, generators, mask, batch_size=centers.shape[:-2])
+    return Obstacles(centers, generators, mask)
 
 
 def assert_closed_form_matches_autograd(checker, x0, plan, centers, generators, mask, iterations: int) -> None:

@@ -234,7 +234,7 @@ def _sanitize(x0: Tensor, plan: Tensor, obstacles: Obstacles, safe_plan: Tensor,
     # so that the batched check stays finite; invalid envs' verdicts are never used
     keep = slot_ok & valid.unsqueeze(-1)
     cleaned = [torch.where(keep.view(*keep.shape, *[1] * (part.ndim - 2)), part, 0.0) for part in parts]
-    obstacles = Obstacles(cleaned[0], cleaned[1], obstacles.mask & keep, *cleaned[2:], batch_size=obstacles.batch_size)
+    obstacles = Obstacles(cleaned[0], cleaned[1], obstacles.mask & keep, *cleaned[2:])
     return x0, plan, obstacles, safe_plan, safe_steps, valid, corrupt
 
 

@@ -258,7 +258,7 @@ class BRSLSafetyLayer(Transform):
         brake = brake.to(local.action_dtype).to(dtype).unsqueeze(1)
         d = len(local.position_dims)
         no_obstacles = Obstacles(rest.new_zeros(1, 0, d), rest.new_zeros(1, 0, d, 1),
-                                 torch.zeros(1, 0, dtype=torch.bool), batch_size=[1])
+                                 torch.zeros(1, 0, dtype=torch.bool))
         with torch.no_grad():
             evaluation = local.evaluate(rest, brake, no_obstacles)
             if bool(evaluation.covered.all()):
@@ -472,7 +472,7 @@ class BRSLSafetyLayer(Transform):
             generators = generators.new_zeros(*generators.shape[:-1], 1)
             if constraints[0] is not None:
                 constraints = (constraints[0].new_zeros(*constraints[0].shape[:-1], 1), constraints[1])
-        return state, action, plan, Obstacles(center, generators, mask, *constraints, batch_size=batch)
+        return state, action, plan, Obstacles(center, generators, mask, *constraints)
 
     def _read_constraints(self, tensordict: TensorDictBase, batch: tuple, generators: torch.Size):
         """The polytope obstacles' ``(constraint_matrix, constraint_offset)``, or ``(None, None)`` for zonotopes."""

@@ -28,13 +28,13 @@ Examples:
 from __future__ import annotations
 
 import math
-from typing import Optional, Sequence
+from dataclasses import dataclass
+from typing import Sequence
 
 import torch
 from tensordict import TensorDict
 from torch import Tensor
 
-from torchrl_brsl.sets._tensorclass import documented_tensorclass
 from torchrl_brsl.sets.constrained_zonotope import ConstrainedZonotope
 from torchrl_brsl.sets.reduction import pad_generators
 from torchrl_brsl.sets.zonotope import Zonotope
@@ -43,7 +43,7 @@ __all__ = ["Obstacles", "inflate_box", "inflate_disc", "inflate_polygon", "obsta
            "regular_polygon_generators"]
 
 
-@documented_tensorclass
+@dataclass(frozen=True)
 class Obstacles:
     """A padded batch of ``K`` obstacles per env: what the safety layer checks sets against.
 
@@ -51,9 +51,10 @@ class Obstacles:
     ``constraint_offset``, constrained zonotopes ``{c + G ξ : ||ξ||_∞ <= 1, A ξ = b}``: any
     convex polytope (:meth:`~torchrl_brsl.sets.ConstrainedZonotope.from_polytope`), which only
     the LP collision check handles (:class:`~torchrl_brsl.safety.PlanChecker`'s ``collision``).
-    A tensorclass of batch ``[...]`` (the envs): it indexes like a tensor (``obstacles[idx]``
-    selects envs) and moves across devices. Empty slots have ``mask=False``; their centre and
-    generators are never used.
+    Its batch ``[...]`` (the envs) is ``center.shape[:-2]``; it indexes, expands and reshapes
+    over that batch like a tensor (``obstacles[idx]`` selects envs). Empty slots have
+    ``mask=False``; their centre and generators are never used. A plain frozen dataclass rather
+    than a tensorclass: the safety path reads its fields many times per step.
 
     Args:
         center: ``[..., K, d]``.
@@ -66,13 +67,15 @@ class Obstacles:
         >>> obstacles = Obstacles(**obstacle_batch([inflate_disc(torch.zeros(2), 0.3, 0.1)], capacity=4))
         >>> obstacles.batch_size, obstacles.n_obstacles, obstacles.dim, obstacles.constrained
         (torch.Size([]), 4, 2, False)
+        >>> obstacles.expand(3)[torch.tensor([0, 2])].center.shape
+        torch.Size([2, 4, 2])
     """
 
     center: Tensor
     generators: Tensor
     mask: Tensor
-    constraint_matrix: Optional[Tensor] = None
-    constraint_offset: Optional[Tensor] = None
+    constraint_matrix: Tensor | None = None
+    constraint_offset: Tensor | None = None
 
     def __post_init__(self):
         c, g, m = self.center, self.generators, self.mask
@@ -87,7 +90,11 @@ class Obstacles:
             raise ValueError(f"`constraint_matrix` [..., K, c, p] and `constraint_offset` [..., K, c] come together, "
                              f"matching `generators` {tuple(g.shape)}; got "
                              f"{None if a is None else tuple(a.shape)} and {None if b is None else tuple(b.shape)}")
-        self.batch_size = c.shape[:-2]
+
+    @property
+    def batch_size(self) -> torch.Size:
+        """The envs' batch shape ``[...]``."""
+        return self.center.shape[:-2]
 
     @property
     def n_obstacles(self) -> int:
@@ -104,14 +111,29 @@ class Obstacles:
         """Whether the obstacles carry equality constraints (constrained zonotopes)."""
         return self.constraint_matrix is not None and self.constraint_matrix.shape[-2] > 0
 
+    def _map(self, fn) -> Obstacles:
+        """``fn(tensor, trailing dims)`` applied to every field over the batch."""
+        fields = (self.center, self.generators, self.mask, self.constraint_matrix, self.constraint_offset)
+        trailing = (2, 3, 1, 3, 2)
+        return Obstacles(*(None if t is None else fn(t, k) for t, k in zip(fields, trailing)))
+
+    def __getitem__(self, index) -> Obstacles:
+        """The envs ``index`` (any tensor index over the batch)."""
+        return self._map(lambda t, _: t[index])
+
+    def expand(self, *shape: int) -> Obstacles:
+        """The batch expanded to ``shape`` (views, as :meth:`torch.Tensor.expand`)."""
+        return self._map(lambda t, k: t.expand(*shape, *t.shape[t.ndim - k:]))
+
+    def reshape(self, *shape: int) -> Obstacles:
+        """The batch reshaped to ``shape``."""
+        return self._map(lambda t, k: t.reshape(*shape, *t.shape[t.ndim - k:]))
+
     def to_dtype(self, dtype: torch.dtype) -> Obstacles:
         """The centres, generators and constraints in ``dtype`` (the mask stays bool)."""
         if self.center.dtype == dtype and self.generators.dtype == dtype:
             return self
-        constraints = (None, None) if self.constraint_matrix is None else (self.constraint_matrix.to(dtype),
-                                                                           self.constraint_offset.to(dtype))
-        return Obstacles(self.center.to(dtype), self.generators.to(dtype), self.mask, *constraints,
-                         batch_size=self.batch_size)
+        return self._map(lambda t, _: t if t.dtype is torch.bool else t.to(dtype))
 
     def as_sets(self) -> Zonotope | ConstrainedZonotope:
         """The obstacles as one set batch ``[..., K]`` (constrained when they carry constraints)."""
