@@ -4,7 +4,8 @@ import math
 import pytest
 import torch
 
-from torchrl_brsl.reach import DataDrivenReach, DoubleIntegrator, KinematicBicycle, SaturatedThrustPoint, leaf_distance
+from torchrl_brsl.reach import (DataDrivenReach, DoubleIntegrator, KinematicBicycle, SaturatedThrustPoint, leaf_distance,
+                                leaf_layout)
 from torchrl_brsl.sets import Zonotope
 
 from reach_support import fit, random_plans, sampled
@@ -97,16 +98,19 @@ def test_fit_rejects_bad_input_by_name():
         DataDrivenReach.fit(x[:4], xp[:4], u[:4], system.noise)
 
 
-def test_leaf_distance_matches_a_brute_force_oracle():
+@pytest.mark.parametrize("grouped", [False, True])
+def test_leaf_distance_matches_a_brute_force_oracle(grouped):
     """``D_l`` = distance of the centre to leaf ``l``'s nearest data point + the box radius, per
-    output in its weighted metric (checked against a loop over leaves and points)."""
+    output in its weighted metric (checked against a loop over leaves and points), with and without
+    the data grouped by leaf (:func:`leaf_layout`, the step's path)."""
     system = SaturatedThrustPoint()
     reach = fit(system, 500)
     cells, points = reach._cells, reach._scaled_data
     gen = torch.Generator().manual_seed(3)
     z = points[:7] + 0.2 * torch.randn(7, points.shape[1], generator=gen, dtype=torch.float64)
     radius = 0.05 * torch.rand(7, points.shape[1], generator=gen, dtype=torch.float64)
-    distance = leaf_distance(cells, points, z, radius)
+    layout = leaf_layout(cells, reach._weighted_data) if grouped else None
+    distance = leaf_distance(cells, points, z, radius, layout=layout)
     n, n_leaves = cells.errors.shape
     for k in range(n):
         w = cells.weights[k]

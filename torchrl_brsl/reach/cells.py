@@ -461,24 +461,69 @@ def leaf_bounds(cells: Cells, z_center: Tensor, z_radius: Tensor, phi_radius: Te
     return index, errors, covered
 
 
+class LeafLayout(NamedTuple):
+    """Each output's weighted data grouped by leaf, ``S`` slots per leaf (:func:`leaf_layout`).
+
+    Attributes:
+        points: ``[n, d, M S]`` the points, leaf after leaf (padding: zeros), transposed for a product.
+        norms: ``[n, 1, M S]`` their squared norms (padding: ``inf``, never a nearest point).
+        slots: ``S``, the most points of any leaf.
+    """
+
+    points: Tensor
+    norms: Tensor
+    slots: int
+
+
+def leaf_layout(cells: Cells, weighted_points: Tensor) -> LeafLayout:
+    """The :class:`LeafLayout` of ``weighted_points`` ``[n, N, d]`` (``points * weights`` per output).
+
+    Built once per model, it turns :func:`leaf_distance` into one batched product and a min over
+    each leaf's slots, instead of a distance to every point and a scatter by leaf (5-7x faster on
+    2,000 points; the leaves of a tree hold similar counts, so ``M S`` stays close to ``N``).
+    """
+    n, n_leaves = cells.errors.shape
+    n_points, d = weighted_points.shape[-2:]
+    members = cells.members
+    counts = torch.zeros(n, n_leaves, dtype=torch.long, device=members.device).scatter_add_(
+        1, members, torch.ones_like(members))
+    slots = max(int(counts.max()), 1)
+    order = torch.argsort(members * n_points + torch.arange(n_points, device=members.device), dim=1)
+    leaf = members.gather(1, order)  # each output's points, leaf by leaf
+    rank = torch.arange(n_points, device=members.device) - (counts.cumsum(1) - counts).gather(1, leaf)
+    slot = (leaf * slots + rank).unsqueeze(-1)  # [n, N, 1]
+    sorted_points = weighted_points.gather(1, order.unsqueeze(-1).expand(-1, -1, d))
+    points = weighted_points.new_zeros(n, n_leaves * slots, d).scatter_(1, slot.expand(-1, -1, d), sorted_points)
+    norms = weighted_points.new_full((n, n_leaves * slots, 1), torch.inf).scatter_(
+        1, slot, sorted_points.square().sum(-1, keepdim=True))
+    return LeafLayout(points.transpose(1, 2).contiguous(), norms.transpose(1, 2).contiguous(), slots)
+
+
 def leaf_distance(cells: Cells, points: Tensor, z_center: Tensor, z_radius: Tensor | None = None,
-                  weighted_points: Tensor | None = None) -> Tensor:
+                  weighted_points: Tensor | None = None, layout: LeafLayout | None = None) -> Tensor:
     """``D_l``: how far a query box lies at most from each leaf's data, ``[..., n, M]``.
 
     The distance of the centre ``z_center`` ``[..., d]`` to the leaf's nearest data point plus
     the box's radius ``z_radius`` ``[..., d]`` (both in each output's weighted metric): by the
-    triangle inequality every ``z`` of the box is at most that far from the leaf's data.
+    triangle inequality every ``z`` of the box is at most that far from the leaf's data. A leaf
+    without data (padding) gets 0.
 
     Args:
         points: ``[N, d]`` the scaled data that ``cells.members`` refers to.
         weighted_points: ``[n, N, d]`` ``points * weights`` per output, when already at hand.
+        layout: the data grouped by leaf (:func:`leaf_layout`), for repeated queries.
     """
     n, n_leaves = cells.errors.shape
-    weighted = points * cells.weights[:, None, :] if weighted_points is None else weighted_points
     query = (z_center[..., None, :] * cells.weights).reshape(-1, n, z_center.shape[-1]).transpose(0, 1)  # [n, B, d]
-    dist = torch.cdist(query, weighted)  # [n, B, N]
-    leaf = cells.members.unsqueeze(1).expand_as(dist)
-    nearest = dist.new_zeros(n, dist.shape[1], n_leaves).scatter_reduce_(-1, leaf, dist, "amin", include_self=False)
+    if layout is None:
+        weighted = points * cells.weights[:, None, :] if weighted_points is None else weighted_points
+        dist = torch.cdist(query, weighted)  # [n, B, N]
+        leaf = cells.members.unsqueeze(1).expand_as(dist)
+        nearest = dist.new_zeros(n, dist.shape[1], n_leaves).scatter_reduce_(-1, leaf, dist, "amin", include_self=False)
+    else:  # |q - p|² = |p|² - 2 q.p + |q|², the nearest of each leaf's slots, then the root
+        squared = torch.baddbmm(layout.norms, query, layout.points, alpha=-2).add_(query.square().sum(-1, keepdim=True))
+        nearest = squared.view(n, -1, n_leaves, layout.slots).amin(-1).clamp_min_(0).sqrt_()
+        nearest = torch.where(torch.isinf(nearest), 0.0, nearest)
     nearest = nearest.transpose(0, 1).reshape(*z_center.shape[:-1], n, n_leaves)
     if z_radius is None:
         return nearest

@@ -17,7 +17,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torchrl_brsl.reach.cells import leaf_bounds, leaf_distance
+from torchrl_brsl.reach.cells import leaf_bounds, leaf_distance, leaf_layout
 from torchrl_brsl.reach.hinges import product_relaxation, relu_relaxation
 from torchrl_brsl.sets import reduce_girard
 from torchrl_brsl.sets._checks import skip_value_checks
@@ -57,7 +57,7 @@ class LocalStep:
         self.hinge_directions = cells.hinge_directions / scale  # [n, H, d]
         self.product_directions = cells.product_directions / scale  # [n, Q, 2, d]
         self.product_knots = cells.product_knots
-        self.points, self.weighted_points = model._scaled_data, model._weighted_data
+        self.points, self.layout = model._scaled_data, leaf_layout(cells, model._weighted_data)
         self.leaf_rows = model._leaf_rows
         self.row_offset = torch.arange(n, device=scale.device) * n_leaves
         self.widths = (n, model.action_dim, 1, self.n_hinges, self.n_products)
@@ -115,7 +115,7 @@ class LocalStep:
         feature_low, feature_high = torch.cat((feature_low, low), -1), torch.cat((feature_high, high), -1)
         z_center = z_raw * self.inv_scale
         z_radius = torch.cat((g_free.abs().sum(-1) * self.inv_scale_free, torch.zeros_like(action)), dim=-1)
-        distance = leaf_distance(cells, self.points, z_center.detach(), z_radius.detach(), self.weighted_points)
+        distance = leaf_distance(cells, self.points, z_center.detach(), z_radius.detach(), layout=self.layout)
         index, errors, covered = leaf_bounds(cells, z_center, z_radius, phi_radius, feature_low, feature_high, distance)
         A, B, offset, theta, theta_p = self.leaf_rows[index + self.row_offset].split(self.widths, dim=-1)
         # the relaxations relu(s) ∈ λ s + μ ± μ and s1 s2 ∈ λ1 s1 + λ2 s2 + κ ± ε fold into the leaf's
