@@ -5,6 +5,6 @@ from torchrl_brsl.safety.failsafe import Failsafe
 from torchrl_brsl.safety.layer import ADJUSTERS, DIAGNOSTICS, BRSLSafetyLayer
 from torchrl_brsl.safety.plan_check import COLLISION_CHECKS, DEFAULT_STOP_SLACK, Gauge, PlanChecker, PlanEvaluation
 
-__all__ = ["ADJUSTERS", "COLLISION_CHECKS", "DEFAULT_STOP_SLACK", "DIAGNOSTICS", "INPUT_LIMIT", "Adjustment", "BRSLSafetyLayer",
-           "FacetQPAdjuster", "Failsafe", "Gauge", "GradientAdjuster", "PlanChecker", "PlanEvaluation",
+__all__ = ["ADJUSTERS", "COLLISION_CHECKS", "DEFAULT_STOP_SLACK", "DIAGNOSTICS", "INPUT_LIMIT", "Adjustment",
+           "BRSLSafetyLayer", "FacetQPAdjuster", "Failsafe", "Gauge", "GradientAdjuster", "PlanChecker", "PlanEvaluation",
            "SafetyDecision", "StepDecision"]
