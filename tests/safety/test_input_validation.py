@@ -371,3 +371,16 @@ def test_property_batched_bad_values_are_flagged_where_they_are_and_nowhere_else
     for name in ("intervened", "failsafe", "invalid_input", "unverified_hold"):
         assert torch.equal(out["brsl", name][other], reference["brsl", name][other]), name
     event("invalid, flagged" if invalid else "valid")
+
+
+def test_polytope_constraints_come_together_and_match_the_obstacles():
+    env, td = start()
+    k, p = td["obstacles", "generators"].shape[-3], td["obstacles", "generators"].shape[-1]
+    alone = td.clone()
+    alone["obstacles", "constraint_matrix"] = torch.zeros(k, 2, p, dtype=torch.float64)
+    with pytest.raises(ValueError, match="constraint_offset"):
+        env.step(alone)
+    mismatched = alone.clone()
+    mismatched["obstacles", "constraint_offset"] = torch.zeros(k, 3, dtype=torch.float64)  # 3 rows, not 2
+    with pytest.raises(ValueError, match=rf"`obstacles/constraint_offset` has shape \({k}, 3\), expected \({k}, 2\)"):
+        env.step(mismatched)

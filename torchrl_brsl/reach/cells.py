@@ -414,7 +414,7 @@ def _nearest_distance(points: Tensor) -> Tensor:
 
 
 def leaf_bounds(cells: Cells, z_center: Tensor, z_radius: Tensor, phi_radius: Tensor, feature_low: Tensor,
-                feature_high: Tensor, distance: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+                feature_high: Tensor, distance: Tensor, phi: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
     """Per output, one leaf's affine model and an error bound valid over a whole query set.
 
     The leaves tile the data's region, so every ``z`` of the query set lies in one of the
@@ -432,13 +432,14 @@ def leaf_bounds(cells: Cells, z_center: Tensor, z_radius: Tensor, phi_radius: Te
         feature_low, feature_high: ``[..., n, H + Q]`` the range of each output's hinge and
             product features over the query set.
         distance: ``[..., n, M]`` ``D_l`` in each output's weighted metric (:func:`leaf_distance`).
+        phi: ``[..., f]`` ``directions @ z_center`` when already at hand.
 
     Returns:
         ``(index [..., n], errors [..., n], covered [...])``: the leaf whose model is used, the
         error half-width, and whether the query lies inside the data's region.
     """
     n, n_leaves, width = cells.slopes.shape
-    phi = (z_center @ cells.directions.T)[..., None, None, :]  # [..., 1, 1, f]
+    phi = (z_center @ cells.directions.T if phi is None else phi)[..., None, None, :]  # [..., 1, 1, f]
     radius = phi_radius[..., None, None, :]
     # > 0 where the query box misses a leaf (float comparisons: much faster than bool ones here)
     gap_out = torch.maximum(cells.low - phi - radius, phi - radius - cells.high).amax(-1)  # [..., n, M]
@@ -499,7 +500,7 @@ def leaf_layout(cells: Cells, weighted_points: Tensor) -> LeafLayout:
     return LeafLayout(points.transpose(1, 2).contiguous(), norms.transpose(1, 2).contiguous(), slots)
 
 
-def leaf_distance(cells: Cells, points: Tensor, z_center: Tensor, z_radius: Tensor | None = None,
+def leaf_distance(cells: Cells, points: Tensor | None, z_center: Tensor, z_radius: Tensor | None = None,
                   weighted_points: Tensor | None = None, layout: LeafLayout | None = None) -> Tensor:
     """``D_l``: how far a query box lies at most from each leaf's data, ``[..., n, M]``.
 
@@ -509,7 +510,7 @@ def leaf_distance(cells: Cells, points: Tensor, z_center: Tensor, z_radius: Tens
     without data (padding) gets 0.
 
     Args:
-        points: ``[N, d]`` the scaled data that ``cells.members`` refers to.
+        points: ``[N, d]`` the scaled data that ``cells.members`` refers to (unused with ``layout``).
         weighted_points: ``[n, N, d]`` ``points * weights`` per output, when already at hand.
         layout: the data grouped by leaf (:func:`leaf_layout`), for repeated queries.
     """

@@ -57,7 +57,7 @@ class LocalStep:
         self.hinge_directions = cells.hinge_directions / scale  # [n, H, d]
         self.product_directions = cells.product_directions / scale  # [n, Q, 2, d]
         self.product_knots = cells.product_knots
-        self.points, self.layout = model._scaled_data, leaf_layout(cells, model._weighted_data)
+        self.layout = leaf_layout(cells, model._weighted_data)
         self.leaf_rows = model._leaf_rows
         self.row_offset = torch.arange(n, device=scale.device) * n_leaves
         self.widths = (n, model.action_dim, 1, self.n_hinges, self.n_products)
@@ -106,7 +106,7 @@ class LocalStep:
         g_free = generators.index_select(-2, self.free)  # [..., n_F, p] (actions are exact)
         ranges = (self.projection_free @ g_free).abs().sum(-1)  # exact interval radius per direction [..., F]
         phi_radius, hinge_radius, factor_radius = ranges.split(self.sizes, -1)
-        _, hinge_center, factor_center = (z_raw @ self.projection - self.knots).split(self.sizes, -1)
+        phi, hinge_center, factor_center = (z_raw @ self.projection - self.knots).split(self.sizes, -1)
         slope, offset_h, feature_low, feature_high = relu_relaxation(hinge_center.unflatten(-1, (n, self.n_hinges)),
                                                                      hinge_radius.unflatten(-1, (n, self.n_hinges)))
         factors = (n, self.n_products, 2)
@@ -115,8 +115,9 @@ class LocalStep:
         feature_low, feature_high = torch.cat((feature_low, low), -1), torch.cat((feature_high, high), -1)
         z_center = z_raw * self.inv_scale
         z_radius = torch.cat((g_free.abs().sum(-1) * self.inv_scale_free, torch.zeros_like(action)), dim=-1)
-        distance = leaf_distance(cells, self.points, z_center.detach(), z_radius.detach(), layout=self.layout)
-        index, errors, covered = leaf_bounds(cells, z_center, z_radius, phi_radius, feature_low, feature_high, distance)
+        distance = leaf_distance(cells, None, z_center.detach(), z_radius.detach(), layout=self.layout)
+        index, errors, covered = leaf_bounds(cells, z_center, z_radius, phi_radius, feature_low, feature_high, distance,
+                                             phi)
         A, B, offset, theta, theta_p = self.leaf_rows[index + self.row_offset].split(self.widths, dim=-1)
         # the relaxations relu(s) ∈ λ s + μ ± μ and s1 s2 ∈ λ1 s1 + λ2 s2 + κ ± ε fold into the leaf's
         # model

@@ -393,11 +393,9 @@ def _leaf_jacobian(checker: PlanChecker, x0: Tensor, plan: Tensor) -> Tensor:
         if j < plan_steps:
             action, moved = plan[:, j], basis[j].expand(n_envs, m, n_vars)
         elif checker.failsafe.policy is None:
-            action, moved = checker._hold(plan).expand(n_envs, m), tangent.new_zeros(n_envs, m, n_vars)
+            action, moved = checker.hold(plan).expand(n_envs, m), tangent.new_zeros(n_envs, m, n_vars)
         else:
-            brake = torch.minimum(torch.maximum(checker.failsafe.actions(center), checker.action_low),
-                                  checker.action_high)
-            action = brake.to(checker.action_dtype).to(center.dtype)
+            action = checker.brake(center)
             moved = _brake_derivative(checker, center) @ tangent
         center, generators, _, tangent = reach.step_sets(center, generators, action, (tangent, moved))
         jacobians.append(tangent)

@@ -169,10 +169,8 @@ class SafetyDecision:
                 continue
             idx, sub = _for_envs(checker, braking, obstacles)
             x0_i = _take(x0, idx)
-            brake = self.failsafe.actions(x0_i).clamp(sub.action_low, sub.action_high)
-            brake = brake.to(sub.action_dtype).to(x0.dtype).unsqueeze(1)
             with torch.no_grad():
-                braked = sub.evaluate(x0_i, brake, _take(obstacles, idx))
+                braked = sub.evaluate(x0_i, sub.brake(x0_i).unsqueeze(1), _take(obstacles, idx))
             merged = _merge_safe(_Plans(usable, actions, plans.values), idx, braked)
             usable, actions = merged.accepted, merged.actions
             if checker is self.local_checker:
@@ -192,10 +190,10 @@ class SafetyDecision:
         executed = chosen[:, 0]
         exhausted = ~usable & (safe_steps <= 0)
         if bool(exhausted.any()):
-            feedback = self.failsafe.actions(x0).clamp(checker.action_low, checker.action_high)
+            feedback = checker.brake(x0)
             if valid is not None:
-                feedback = torch.where(valid.unsqueeze(-1), feedback, self._hold(feedback).expand_as(feedback))
-            executed = torch.where(exhausted.unsqueeze(-1), feedback.to(checker.action_dtype).to(x0.dtype), executed)
+                feedback = torch.where(valid.unsqueeze(-1), feedback, checker.hold(x0))
+            executed = torch.where(exhausted.unsqueeze(-1), feedback, executed)
         next_plan = torch.cat((chosen[:, 1:], self._hold(chosen).expand(n_envs, 1, -1)), dim=1)
         next_steps = torch.where(usable, torch.full_like(safe_steps, self.horizon - 1), (safe_steps - 1).clamp_min(0))
         return executed, next_plan, next_steps, exhausted

@@ -254,8 +254,7 @@ class BRSLSafetyLayer(Transform):
         n, dtype = reach.state_dim, local.action_low.dtype
         low, high = reach.domain_low.to(dtype), reach.domain_high.to(dtype)
         rest = torch.zeros(1, n, dtype=dtype).clamp(low[:n], high[:n])
-        brake = torch.minimum(torch.maximum(self.failsafe.actions(rest), local.action_low), local.action_high)
-        brake = brake.to(local.action_dtype).to(dtype).unsqueeze(1)
+        brake = local.brake(rest).unsqueeze(1)
         d = len(local.position_dims)
         no_obstacles = Obstacles(rest.new_zeros(1, 0, d), rest.new_zeros(1, 0, d, 1),
                                  torch.zeros(1, 0, dtype=torch.bool))

@@ -183,7 +183,7 @@ class PlanChecker:
             return self.stop_tolerance
         rest = torch.zeros(1, self.reach.state_dim, dtype=self.action_low.dtype, device=self.action_low.device)
         with torch.no_grad():
-            _, sets, _ = self.rollout_sets(rest, self._hold(rest).view(1, 1, -1))
+            _, sets, _ = self.rollout_sets(rest, self.hold(rest).view(1, 1, -1))
         return sets.generators[0, -1, self.stop_dims].abs().sum(-1) + self.stop_slack
 
     def checker(self, obstacle_generators: Tensor) -> ZonotopeCollisionChecker:
@@ -235,9 +235,7 @@ class PlanChecker:
         if n_tail < 0:
             raise ValueError(f"the plan has {plan_steps} steps, more than the horizon T={horizon}")
         powers, transfer, drift = self.reach._transfer(horizon)
-        dtype = powers.dtype
-        hold = torch.minimum(torch.maximum(self.failsafe.hold_action.to(dtype), self.action_low), self.action_high)
-        tail = hold.to(self.action_dtype).to(dtype).expand(n_tail, m).contiguous()
+        tail = self.hold(powers).expand(n_tail, m).contiguous()
         n_vars = plan_steps * m
         constant = transfer[:, n_vars:] @ tail.flatten() + drift.flatten()
         plan_map = transfer[:, :n_vars].T.contiguous()  # [P m, T n]
@@ -281,9 +279,7 @@ class PlanChecker:
                 centers = centers.addmm_(plan.reshape(n_envs, plan_steps * m), affine.plan_map)
                 actions = torch.cat((plan, affine.tail.expand(n_envs, n_tail, m)), dim=1)
                 return actions, centers.view(n_envs, self.horizon, -1)
-            hold = torch.minimum(torch.maximum(self.failsafe.hold_action.to(plan), self.action_low), self.action_high)
-            actions = torch.cat((plan, hold.to(self.action_dtype).to(plan.dtype).expand(plan.shape[0], n_tail, -1)),
-                                dim=1)
+            actions = torch.cat((plan, self.hold(plan).expand(plan.shape[0], n_tail, -1)), dim=1)
             return actions, self.reach.reach_centers(x0, actions)
         centers = self.reach.reach_centers(x0, plan)
         actions = [plan]
@@ -291,8 +287,7 @@ class PlanChecker:
         c = centers[:, -1]
         tail_centers, tail_actions = [], []
         for _ in range(n_tail):
-            u = torch.minimum(torch.maximum(self.failsafe.actions(c), self.action_low), self.action_high)
-            u = u.to(self.action_dtype).to(c.dtype)
+            u = self.brake(c)
             c = c @ A.T + u @ B.T + k
             tail_actions.append(u)
             tail_centers.append(c)
@@ -316,15 +311,14 @@ class PlanChecker:
             raise ValueError(f"the plan has {plan.shape[-2]} steps, more than the horizon T={self.horizon}")
         initial = Zonotope.from_point(x0.to(plan.dtype))
         if self.failsafe.policy is None:
-            actions = torch.cat((plan, self._hold(plan).expand(plan.shape[0], n_tail, -1)), dim=1)
+            actions = torch.cat((plan, self.hold(plan).expand(plan.shape[0], n_tail, -1)), dim=1)
             sets, covered = self.reach.reach_covered(initial, actions)
             return actions, sets, covered
         sets, covered = self.reach.reach_covered(initial, plan)
         center, generators = sets.center[:, -1], sets.generators[:, -1]
         centers, gens, actions = list(sets.center.unbind(1)), list(sets.generators.unbind(1)), [plan]
         for _ in range(n_tail):
-            u = torch.minimum(torch.maximum(self.failsafe.actions(center), self.action_low), self.action_high)
-            u = u.to(self.action_dtype).to(center.dtype)
+            u = self.brake(center)
             center, generators, inside = self.reach.step_sets(center, generators, u)
             covered = covered & inside
             actions.append(u.unsqueeze(1))
@@ -332,10 +326,16 @@ class PlanChecker:
             gens.append(generators)
         return torch.cat(actions, dim=1), stack_steps(centers, gens), covered
 
-    def _hold(self, like: Tensor) -> Tensor:
-        """The open-loop braking action, clipped and rounded to the action dtype: ``[m]``."""
+    def hold(self, like: Tensor) -> Tensor:
+        """The open-loop braking action as the robot receives it (clipped to the bounds, rounded to the
+        action dtype), in ``like``'s dtype: ``[m]``."""
         hold = torch.minimum(torch.maximum(self.failsafe.hold_action.to(like), self.action_low), self.action_high)
         return hold.to(self.action_dtype).to(like.dtype)
+
+    def brake(self, states: Tensor) -> Tensor:
+        """The braking policy's action at ``states`` ``[..., n]`` as the robot receives it: ``[..., m]``."""
+        brake = torch.minimum(torch.maximum(self.failsafe.actions(states), self.action_low), self.action_high)
+        return brake.to(self.action_dtype).to(states.dtype)
 
     def evaluate(self, x0: Tensor, plan: Tensor, obstacles: Obstacles) -> PlanEvaluation:
         """Verify a batch of plans from measured states.
