@@ -28,7 +28,7 @@ def residual_lipschitz(inputs: Tensor, residuals: Tensor, noise_width: Tensor, n
 
     The residual ``r_i = g(z_i) + (w_i - c_w)`` mixes the model error ``g`` with noise, and
     two noise samples differ by at most ``noise_width`` per dimension. Over the
-    ``n_neighbors`` nearest pairs (KD-tree, ``O(N log N)``),
+    ``n_neighbors`` nearest pairs (KD-tree, ``O(N log N)``)::
 
         L_k = max_{(i, j)} max(0, |r_ik - r_jk| - noise_width_k) / ||z_i - z_j||
 

@@ -119,8 +119,8 @@ class BRSLSafetyLayer(Transform):
             Polytope obstacles come as constrained zonotopes: the ``obstacles`` entry then also
             holds ``constraint_matrix [..., K, c, p]`` and ``constraint_offset [..., K, c]``
             (:func:`~torchrl_brsl.sets.obstacle_batch` writes them).
-        state_key, obstacles_key, plan_key, action_key, safe_action_key, safe_plan_key,
-        diagnostics_key, reward_key: TensorDict keys.
+        state_key, obstacles_key, plan_key, action_key: TensorDict keys of what the layer reads.
+        safe_action_key, safe_plan_key, diagnostics_key, reward_key: TensorDict keys of what it writes.
 
     Examples:
         >>> reach = DataDrivenReach.from_env(make_env(empty=True), noise=W, steps=500,
