@@ -27,7 +27,7 @@ class Failsafe:
     cheapest, every reachable-set centre then being one affine map of state and plan. A
     braking policy for acceleration- or force-commanded robots and for any robot that drifts
     under a constant command (with the constant brake their stop check is rarely met and the
-    layer intervenes far more; see "Bring your own robot" in ``docs/guide.md``). Check either
+    layer intervenes far more; see "Bring your own robot", ``docs/own_robot.md``). Check either
     on the true system: from the states the robot reaches, ``n_brk`` steps of braking stop it
     and it stays stopped (paper Assumption 1).
 
