@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 export MUJOCO_GL ?= egl
 export OMP_NUM_THREADS ?= 1
 
-.PHONY: demo demo-reach test bench install clean
+.PHONY: demo demo-reach test docs bench install clean
 
 install: $(STAMP)
 
@@ -27,7 +27,19 @@ demo-reach: $(STAMP)
 
 # one worker per core (tests are grouped by file, which keeps a module's fixtures on one worker)
 test: $(STAMP)
-	$(PY) -m pytest -q -n auto --dist loadfile
+	$(PY) -m pytest -q -n auto --dist loadfile -m "not docs"
+
+# the site in docs/_build/html: Sphinx with warnings as errors, every tutorial executed
+# (the build is the test tests/docs/test_docs_build.py)
+DOCS_STAMP := $(VENV)/.installed-docs
+
+$(DOCS_STAMP): $(STAMP) pyproject.toml
+	$(PY) -m pip install --quiet -e '.[test,docs]'
+	touch $(DOCS_STAMP)
+
+docs: $(DOCS_STAMP)
+	$(PY) -m pytest -q -m docs tests/docs/test_docs_build.py
+	@echo "open docs/_build/html/index.html"
 
 bench: $(STAMP)
 	$(PY) benchmarks/bench_core.py
@@ -35,4 +47,4 @@ bench: $(STAMP)
 	$(PY) benchmarks/bench_envs.py
 
 clean:
-	rm -rf $(VENV) runs .pytest_cache
+	rm -rf $(VENV) runs .pytest_cache docs/_build docs/auto_tutorials docs/sg_execution_times.rst
