@@ -36,6 +36,7 @@ exclude_patterns = ["_build", "tutorials/README.rst", "**/GALLERY_HEADER.rst"]
 templates_path = []
 
 # Markdown: anchors for headings down to ###, so pages can link to sections of one another
+smartquotes = False  # "--reuse" stays two hyphens, quotes stay straight
 myst_heading_anchors = 3
 myst_enable_extensions = ["dollarmath"]
 
@@ -66,6 +67,7 @@ sphinx_gallery_conf = {
     "reset_modules": ("matplotlib",),
     "show_memory": False,
     "plot_gallery": "True",
+    "run_stale_examples": True,  # rerun unchanged tutorials too: a library change that breaks one fails the build
 }
 
 html_theme = "sphinx_rtd_theme"

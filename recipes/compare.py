@@ -1,5 +1,7 @@
 """BRSL and TD3 (and any other method trained on the task) side by side in one table.
 
+Usage::
+
     python -m recipes.compare runs/point_circle [--episodes N] [--reuse]
 
 Evaluates every ``runs/<task>/<method>/seed<k>`` (or reuses its ``eval.csv`` with ``--reuse``),

@@ -1,5 +1,7 @@
 """Demo: TD3 with and without the BRSL safety layer on a small budget, then the comparison table.
 
+Usage::
+
     python -m recipes.demo [--task point_circle] [--frames 8000]
 
 Trains ``method=brsl`` and ``method=td3`` (same seed, same budget) under ``runs/demo/<task>/``,

@@ -1,5 +1,7 @@
 """Evaluates trained runs on the task's fixed layouts and prints the paper's table.
 
+Usage::
+
     python -m recipes.evaluate runs/point_circle/brsl/seed0 [runs/point_circle/td3/seed0 ...]
     python -m recipes.evaluate runs/point_circle/brsl/seed0 --episodes 5 --video
 

@@ -1,5 +1,7 @@
 """The paper's Tables I and II and Fig. 4 over every run under a root, mean ± std over seeds.
 
+Usage::
+
     python -m recipes.table runs [--reuse] [--episodes N] [--out docs/tables.md]
 
 Reads ``<root>/<task>/<method>/seed<k>`` for every task and method, evaluates each run (or

@@ -1,6 +1,8 @@
 """TD3 on a task, behind the BRSL safety layer (``method=brsl``), unprotected (``method=td3``) or
 behind one of the paper's baselines (``method=secas|sailr|rts``, see :mod:`recipes.baselines`).
 
+Usage::
+
     python -m recipes.train task=point_circle method=brsl seed=0 total_frames=20000
 
 Paper Algorithm 1: the actor (+ decaying Gaussian exploration) proposes an action, the layer

@@ -100,6 +100,8 @@ def _defined_here(obj) -> bool | None:
 def skip_foreign_members(app, what, name, obj, skip, options):
     if what == "class" and _defined_here(obj) is False:
         return True
+    if what == "class" and type(obj).__name__ == "_tuplegetter":
+        return True  # a NamedTuple field: its class docstring's Attributes section describes it
     return None
 
 

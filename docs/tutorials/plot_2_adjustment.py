@@ -57,16 +57,20 @@ print(f"proposed plan verified safe: {bool(before.safe)}")
 #
 # Both adjusters return the adjusted plan and its exact re-check. The facet-locked QP starts
 # from a *reference* plan that is already safe (in the layer: the previous safe plan, shifted
-# by one step); here, full braking.
-reference = torch.tensor([[[-1.0, 0.0]] * N_PLAN], dtype=torch.float64)
+# by one step); here, coasting (zero acceleration) before the braking tail. It is a local
+# method: it locks each set to the obstacle facet that separates it under the reference,
+# projects the proposal onto those linear constraints, and backs off towards the reference
+# while the exact check rejects the result, so a reference far from the proposal (full
+# braking, say) gives a more cautious plan.
+reference = torch.tensor([[[0.0, 0.0]] * N_PLAN], dtype=torch.float64)
 print(f"reference plan verified safe: {bool(checker.evaluate(x0, reference, obstacles).safe)}")
 adjusted = {
     "projected gradient": GradientAdjuster(max_iterations=200, time_budget=None)(checker, x0, plan, obstacles),
     "facet-locked QP": FacetQPAdjuster()(checker, x0, plan, obstacles, reference=reference),
 }
 for name, result in adjusted.items():
-    print(f"{name}: verified safe {bool(result.evaluation.safe)} after {int(result.iterations)} iterations; "
-          f"x accelerations {result.plan[0, :, 0].numpy().round(2)} (proposed {plan[0, :, 0].numpy()})")
+    print(f"{name}: verified safe {bool(result.evaluation.safe)} after {int(result.iterations)} iterations\n"
+          f"    x accelerations {result.plan[0, :, 0].numpy().round(2)} (proposed {plan[0, :, 0].numpy()})")
 
 # %%
 # The collision values of each step
@@ -95,6 +99,7 @@ for ax, (name, zonotopes) in zip(axes, sets.items()):
     obstacle.plot(ax, facecolor="tab:red", alpha=0.6)
     ax.set_title(f"{name}: v* min {exact[name].min():.2f}")
     ax.set_xlabel("x [m]")
+    ax.set_xlim(-0.05, 1.6)
     if name in adjusted:
         actions = adjusted[name].evaluation.actions[0]
         states, paths = x0.expand(2000, -1), [x0.expand(2000, -1)]

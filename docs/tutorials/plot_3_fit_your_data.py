@@ -73,8 +73,8 @@ plans = system.sample_actions(10, 8, generator=gen)
 results = {}
 for name, reach in models.items():
     results[name] = result = sample_reach(reach, lambda x, u: system.step(x, u, gen), x0, plans, samples=200)
-    print(f"{name:>18}: {int(result.covered.sum())} of 10 plans claimed, {result.violations} of "
-          f"{result.checked} sampled states outside their sets, median width / spread {result.median_ratio:.1f}")
+    print(f"{name:>17}: {int(result.covered.sum())}/10 plans claimed, {result.violations} of {result.checked} "
+          f"states outside, width / spread {result.median_ratio:.1f}")
     assert result.violations == 0
 
 # %%
