@@ -153,30 +153,13 @@ def aerial_model(
         max_acceleration: force limit of the velocity servos per unit mass (m/s^2);
             ``None``: no limit (linear servos).
     """
-    arm = 0.8 * radius
-    visuals = []
-    for i in range(n_rotors):
-        angle = (i + 0.5) * 2 * np.pi / n_rotors
-        x, y = arm * np.cos(angle), arm * np.sin(angle)
-        visuals.append(
-            f'<geom class="visual" type="capsule" fromto="0 0 0 {x:.4f} {y:.4f} 0" size="0.02" rgba=".15 .15 .17 1"/>'
-            f'<geom class="visual" type="cylinder" pos="{x:.4f} {y:.4f} 0.03" size="{0.35 * radius:.4f} 0.004"'
-            ' rgba=".6 .6 .65 .6"/>'
-        )
     robot = f"""
     <body name="robot" pos="0 0 2" gravcomp="1">
       <freejoint name="root"/>
       <geom name="robot" class="robot" type="sphere" size="{radius}" mass="{mass}"/>
-      <geom class="visual" type="box" size="{0.25 * radius:.4f} {0.25 * radius:.4f} 0.04" rgba=".9 .35 .2 1"/>
-      {''.join(visuals)}
-      <camera name="follow" mode="trackcom" pos="0 -6 5" xyaxes="1 0 0 0 0.8 0.6"/>
+      {airframe_visuals(radius, n_rotors)}
     </body>"""
-    kinds = ("box",) * N_BOUNDARY + ("cylinder",) * n_pillars + ("box",) * n_boxes
-    max_half = [o.half_size for o in boundary()]
-    max_half += [[_PILLAR_RADIUS[1], _PILLAR_RADIUS[1], CEILING / 2]] * n_pillars
-    max_half += [[_BOX_HALF_SIDE[1], _BOX_HALF_SIDE[1], _BOX_HALF_HEIGHT[1]]] * n_boxes
-    obstacles = "" if empty else obstacle_bodies_xml(kinds, max_half)
-    xml = model_xml(name, 0.02, robot, obstacles, floor_half_extent=ARENA + 1.0, overview_height=19.0, floor_z=-0.01)
+    xml = arena_xml(name, 0.02, robot, empty, n_pillars, n_boxes)
     kv = mass / _SERVO_TIME_CONSTANT
     if max_acceleration is None:
         limit = 'forcelimited="false"'
@@ -188,3 +171,45 @@ def aerial_model(
         for axis, gear in (("x", "1 0 0 0 0 0"), ("y", "0 1 0 0 0 0"), ("z", "0 0 1 0 0 0"))
     )
     return with_actuators(xml, actuators)
+
+
+def airframe_visuals(radius: float, n_rotors: int) -> str:
+    """Visual geoms of a multirotor of collision radius ``radius``: hub, ``n_rotors`` arms of length
+    ``0.8 * radius`` (rotor ``i`` at the angle ``(i + 0.5) 2π / n_rotors``) with propeller discs, and the
+    ``follow`` camera."""
+    arm = 0.8 * radius
+    visuals = [f'<geom class="visual" type="box" size="{0.25 * radius:.4f} {0.25 * radius:.4f} 0.04"'
+               ' rgba=".9 .35 .2 1"/>']
+    for i in range(n_rotors):
+        angle = (i + 0.5) * 2 * np.pi / n_rotors
+        x, y = arm * np.cos(angle), arm * np.sin(angle)
+        visuals.append(
+            f'<geom class="visual" type="capsule" fromto="0 0 0 {x:.4f} {y:.4f} 0" size="0.02" rgba=".15 .15 .17 1"/>'
+            f'<geom class="visual" type="cylinder" pos="{x:.4f} {y:.4f} 0.03" size="{0.35 * radius:.4f} 0.004"'
+            ' rgba=".6 .6 .65 .6"/>'
+        )
+    visuals.append('<camera name="follow" mode="trackcom" pos="0 -6 5" xyaxes="1 0 0 0 0.8 0.6"/>')
+    return "\n      ".join(visuals)
+
+
+def arena_xml(name: str, timestep: float, robot: str, empty: bool, n_pillars: int, n_boxes: int) -> str:
+    """The arena model around a multirotor body ``robot`` (XML of ``<body name="robot">``), without actuators.
+
+    Args:
+        name: model name.
+        timestep: physics time step (s).
+        robot: the robot body's XML.
+        empty: leave out every obstacle body.
+        n_pillars: number of random cylinder slots.
+        n_boxes: number of random box slots.
+
+    Returns:
+        The XML string; close it with :func:`envs._mjcf.with_actuators`.
+    """
+    kinds = ("box",) * N_BOUNDARY + ("cylinder",) * n_pillars + ("box",) * n_boxes
+    max_half = [o.half_size for o in boundary()]
+    max_half += [[_PILLAR_RADIUS[1], _PILLAR_RADIUS[1], CEILING / 2]] * n_pillars
+    max_half += [[_BOX_HALF_SIDE[1], _BOX_HALF_SIDE[1], _BOX_HALF_HEIGHT[1]]] * n_boxes
+    obstacles = "" if empty else obstacle_bodies_xml(kinds, max_half)
+    return model_xml(name, timestep, robot, obstacles, floor_half_extent=ARENA + 1.0, overview_height=19.0,
+                     floor_z=-0.01)

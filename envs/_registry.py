@@ -65,7 +65,8 @@ def make(name: str, seed: int | None = 0, empty: bool = False, layout: int | Non
             ``terminate_on_collision`` for every task; ``max_acceleration`` for
             ``point_boxes``, ``diffdrive_nav``, ``quadrotor_nav`` and ``hexarotor_wind``;
             ``max_turn_acceleration`` and ``robot``, ``"kinematic"`` or ``"wheeled"``, for
-            ``diffdrive_nav``) go to the
+            ``diffdrive_nav``; ``robot``, ``"kinematic"`` or ``"rotor"``, for ``quadrotor_nav`` and
+            ``hexarotor_wind``: :func:`safety_info` takes the same ``robot``) go to the
             task; anything else (``from_pixels``, ``pixels_only``, ``camera_id``,
             ``render_kwargs``, ``device``) to :class:`~torchrl.envs.DMControlWrapper`.
 
@@ -91,12 +92,28 @@ def make(name: str, seed: int | None = 0, empty: bool = False, layout: int | Non
     return env
 
 
-def safety_info(name: str) -> SafetyInfo:
+def safety_info(name: str, robot: str | None = None) -> SafetyInfo:
     """What the safety layer needs to know about task ``name`` (see :class:`SafetyInfo`).
+
+    Args:
+        name: one of :data:`TASKS`.
+        robot: the robot, as the ``robot`` argument of :func:`make` (``"wheeled"`` for ``diffdrive_nav``,
+            ``"rotor"`` for ``quadrotor_nav`` and ``hexarotor_wind``); ``None``: the task's default robot.
+
+    Raises:
+        ValueError: an unknown task, or a robot the task does not have.
 
     Examples:
         >>> import envs
         >>> envs.safety_info("diffdrive_nav").n_brk, envs.safety_info("diffdrive_nav").n_plan
         (6, 8)
+        >>> envs.safety_info("quadrotor_nav").n_brk, envs.safety_info("quadrotor_nav", robot="rotor").n_brk
+        (10, 16)
     """
-    return _task(name).safety_info()
+    task = _task(name)
+    if robot is None:
+        return task.safety_info()
+    robots = getattr(_module(name), "ROBOT_TASKS", {"kinematic": task})
+    if robot not in robots:
+        raise ValueError(f"unknown robot {robot!r} for {name}; choose one of {tuple(robots)}")
+    return robots[robot].safety_info()

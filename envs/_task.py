@@ -31,7 +31,8 @@ class SafetyTask(base.Task):
     The class attributes describe the task; :meth:`safety_info` hands the safety layer's share of
     them on as a :class:`SafetyInfo`, whose attributes of the same names document them
     (``n_brk``, ``n_plan``, ``braking_action``, :meth:`braking_policy`, ``stop_tolerance``, ...).
-    ``episode_steps`` is the default time limit of :func:`task_environment`.
+    ``episode_steps`` is the default time limit of :func:`task_environment`, ``physics_class`` the
+    dm_control ``Physics`` (sub)class it builds the model with.
 
     Args:
         empty: no obstacles (obstacle mask all False); episodes are truncated when
@@ -65,6 +66,7 @@ class SafetyTask(base.Task):
     n_plan: ClassVar[int]
     braking_action: ClassVar[np.ndarray]
     stop_tolerance: ClassVar[float]
+    physics_class: ClassVar[type[dm_mujoco.Physics]] = dm_mujoco.Physics
 
     def __init__(
         self,
@@ -341,7 +343,7 @@ def task_environment(
     Returns:
         A ``dm_control.rl.control.Environment``.
     """
-    physics = dm_mujoco.Physics.from_xml_string(model(empty, **model_options))
+    physics = task.physics_class.from_xml_string(model(empty, **model_options))
     instance = task(empty=empty, layout=layout, terminate_on_collision=terminate_on_collision, random=seed)
     steps = task.episode_steps if episode_steps is None else episode_steps
     return control.Environment(physics, instance, time_limit=(steps - 0.5) * task.dt,

@@ -229,6 +229,10 @@ class WheeledDiffDriveNav(DiffDriveNav):
         physics.model.actuator_actrange[:] = np.sort([start, target], axis=0).T
 
 
+#: the task class of each robot (``robot`` of :func:`build_environment`)
+ROBOT_TASKS = {"kinematic": DiffDriveNav, "wheeled": WheeledDiffDriveNav}
+
+
 def _force_limit(limit: float | None) -> str:
     return 'forcelimited="false"' if limit is None else f'forcelimited="true" forcerange="{-limit:.6g} {limit:.6g}"'
 

@@ -9,6 +9,7 @@ MODULES = [
     "envs._lidar",
     "envs._obstacles",
     "envs._registry",
+    "envs._rotor",
     "envs._safety_info",
     "envs._task",
     "envs._wrapper",
