@@ -10,7 +10,8 @@ Columns:
 Actions are uniform over the action box and episodes restart when they end (reset
 time included). Usage:
 ``python benchmarks/bench_envs.py [--steps 3000] [--empty] [--tasks point_boxes ...] [--robot wheeled]``
-(``--robot`` selects the ``diffdrive_nav`` robot).
+(``--robot`` selects the robot of the tasks that have several: ``wheeled`` for ``diffdrive_nav``, ``rotor`` for
+``quadrotor_nav`` and ``hexarotor_wind``; every task given must have it).
 """
 from __future__ import annotations
 
@@ -21,7 +22,6 @@ import numpy as np
 import torch
 
 import envs
-from envs import diffdrive_nav
 from envs._registry import _module
 
 torch.set_num_threads(1)
@@ -77,10 +77,14 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=3000)
     parser.add_argument("--empty", action="store_true", help="benchmark the obstacle-free variants")
     parser.add_argument("--tasks", nargs="+", choices=envs.TASKS, default=envs.TASKS, help="tasks (default: all)")
-    parser.add_argument("--robot", choices=diffdrive_nav.ROBOTS, help="the diffdrive_nav robot (default: kinematic)")
+    robots = {name: getattr(_module(name), "ROBOTS", ("kinematic",)) for name in envs.TASKS}
+    parser.add_argument("--robot", choices=sorted(set().union(*robots.values())),
+                        help="the robot of the tasks (default: each task's kinematic robot)")
     args = parser.parse_args()
-    if args.robot is not None and set(args.tasks) != {"diffdrive_nav"}:
-        parser.error("--robot needs --tasks diffdrive_nav")
+    if args.robot is not None:
+        without = [name for name in args.tasks if args.robot not in robots[name]]
+        if without:
+            parser.error(f"--robot {args.robot} is not a robot of {', '.join(without)}; pick the tasks with --tasks")
     options = {} if args.robot is None else {"robot": args.robot}
     print(f"steps/s, one thread, {args.steps} steps per entry{' (empty variants)' if args.empty else ''}")
     print(f"{'task':<16}{'dm_control':>12}{'torchrl':>12}{'reference':>12}")
