@@ -32,6 +32,11 @@ CASES = {
     # a new wind every episode; the local model's radius is 0.39 m here (the global fit's 0.24 m): its 9-D
     # state is sparsely covered by 500 steps, and the bound pays for the distance to each leaf's data
     "hexarotor_wind": ({"max_acceleration": None}, 500, 11, 0.75, 0.45),
+    # the rotor-driven multirotors (robot="rotor": rotors, attitude and an onboard cascaded controller), over their
+    # n_plan = 17 steps, held to the kinematic robots' bars. Measured: 0 of 40 claimed for either; with 2,000
+    # transitions the quadrotor's position radius is 0.28 m after one step and 4 of 40 plans stay covered for two
+    "quadrotor_nav:rotor": ({"robot": "rotor"}, 500, 17, 0.9, 1.0),
+    "hexarotor_wind:rotor": ({"robot": "rotor"}, 500, 17, 0.75, 0.45),
 }
 
 
@@ -44,7 +49,11 @@ def _uniform(info, *shape):
 # ramps clip along (u_v - v) ± (track / 2)(u_ω - ω), which none of the local model's hinge candidates x_i ± r u_j
 # follows; fitted to noiseless ideal per-wheel ramps its one-step ω radius is 0.42 rad/s, to ideal ramps of v and
 # ω each 0.023 rad/s
-KNOWN_GAPS = {"diffdrive_nav:wheeled:body": "per-wheel speed ramps: kinks outside the local model's hinge candidates"}
+# the rotor robots' attitude is hidden from the state: the same state and action lead to next velocities ~1 m/s apart
+# (benchmarks/bench_rotor.py), so the one-step sets are wide and leave the data's leaves within two steps
+_HIDDEN_ATTITUDE = "hidden attitude: the next velocity depends on the tilt, not in the state"
+KNOWN_GAPS = {"diffdrive_nav:wheeled:body": "per-wheel speed ramps: kinks outside the local model's hinge candidates",
+              "quadrotor_nav:rotor": _HIDDEN_ATTITUDE, "hexarotor_wind:rotor": _HIDDEN_ATTITUDE}
 
 
 @pytest.mark.parametrize("name", list(CASES))
@@ -54,7 +63,7 @@ def test_sampled_true_trajectories_stay_in_the_reachable_sets(name):
     body = name.endswith(":body")
     name = name.split(":")[0]
     torch.manual_seed(0)
-    info = envs.safety_info(name)
+    info = envs.safety_info(name, robot=options.get("robot"))
     data = collect_offline_data(envs.make(name, empty=True, seed=11, **options), steps)
     reach = DataDrivenReach.from_data(data, Zonotope(info.noise_center.double(), info.noise_generators.double()),
                                       translation_invariant_dims=info.position_dims, max_generators=30,
