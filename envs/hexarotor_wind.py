@@ -28,6 +28,9 @@
 * Reward: progress towards the current checkpoint + 10 per checkpoint - 10 on a
   collision. Ends after the 10th checkpoint or a collision (``terminated``) or
   after 400 steps (``truncated``).
+* Rotor robot (``robot="rotor"``): the same task with a 2 kg free body lifted and steered by six
+  rotors and flown by an onboard cascaded velocity controller (:mod:`envs._rotor`) that feeds its drag
+  forward and learns the wind while hovering; same spaces, state, noise, layouts and wind, ``n_brk = 16``.
 """
 from __future__ import annotations
 

@@ -13,6 +13,9 @@
 * Ends at the goal or a collision (``terminated``) or after 200 steps (``truncated``).
 * Empty variant: no obstacles (not even the floor), random start velocity, truncated
   outside ``|x|, |y| ≤ 10, -4 ≤ z ≤ 8``.
+* Rotor robot (``robot="rotor"``): the same task with a 1 kg free body lifted and steered by four
+  rotors and flown by an onboard cascaded velocity controller (:mod:`envs._rotor`); same spaces, state,
+  noise and layouts, ``n_brk = 16``.
 """
 from __future__ import annotations
 
