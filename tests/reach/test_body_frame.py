@@ -128,10 +128,10 @@ def test_a_malformed_body_frame_is_rejected(position, heading):
 def _bicycle_states_outside(monkeypatch, floor: bool) -> int:
     """Sampled states outside on the bicycle case where the leaves' curvature is as small as the
     noise (500 steps and plans drawn from one generator, as in bench_reach_tightness.py)."""
-    # hinges only, their knots left on the quantile grid: a product feature, or knots moved to the kinks, take
-    # the curvature out of this case
+    # hinges only, left on their grid of directions and knots: a product feature, or hinges moved to the kinks,
+    # take the curvature out of this case
     monkeypatch.setattr(cells, "fit_features", lambda *args, n_actions: hinges.fit_features(*args))
-    monkeypatch.setattr(hinges, "refine_knots", lambda values, knots, *args: knots)
+    monkeypatch.setattr(hinges, "refine_hinges", lambda inputs, directions, knots, *args: (directions, knots))
     if not floor:
         monkeypatch.setattr(cells, "curvature_floor", lambda low, high, slopes, weights: slopes.new_zeros(len(low)))
     system = KinematicBicycle()

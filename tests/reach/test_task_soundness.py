@@ -29,15 +29,22 @@ CASES = {
     # their grid)
     "quadrotor_nav:capped": ({}, 500, 11, 0.9, 0.75),
     "point_boxes:capped": ({}, 500, 4, 0.9, 0.1),
-    # a new wind every episode; the local model's radius is 0.39 m here (the global fit's 0.24 m): its 9-D
-    # state is sparsely covered by 500 steps, and the bound pays for the distance to each leaf's data
-    "hexarotor_wind": ({"max_acceleration": None}, 500, 11, 0.75, 0.45),
+    # a new wind every episode, not in the state: the data must see the range of winds (OFFLINE_EPISODE below).
+    # Measured: 25 of 40 claimed, final radius 0.31 m median, 0.46 m at most. With the task's 400-step episodes
+    # the 500 steps saw two winds: 32 of 40 were claimed, and a stronger wind put a sampled velocity 0.03 m/s
+    # outside its first set (35 % beyond its radius)
+    "hexarotor_wind": ({"max_acceleration": None}, 500, 11, 0.6, 0.5),
     # the rotor-driven multirotors (robot="rotor": rotors, attitude and an onboard cascaded controller), over their
     # n_plan = 17 steps, held to the kinematic robots' bars. Measured: 0 of 40 claimed for either; with 2,000
     # transitions the quadrotor's position radius is 0.28 m after one step and 4 of 40 plans stay covered for two
     "quadrotor_nav:rotor": ({"robot": "rotor"}, 500, 17, 0.9, 1.0),
     "hexarotor_wind:rotor": ({"robot": "rotor"}, 500, 17, 0.75, 0.45),
 }
+
+
+# offline episodes ended early, so that the data see many of what a reset draws (the recipes'
+# task.offline.episode_steps)
+OFFLINE_EPISODE = {"hexarotor_wind": 50}
 
 
 def _uniform(info, *shape):
@@ -60,7 +67,8 @@ def test_sampled_true_trajectories_stay_in_the_reachable_sets(name):
     name = name.split(":")[0]
     torch.manual_seed(0)
     info = envs.safety_info(name, robot=options.get("robot"))
-    data = collect_offline_data(envs.make(name, empty=True, seed=11, **options), steps)
+    episode = {"episode_steps": OFFLINE_EPISODE[name]} if name in OFFLINE_EPISODE else {}
+    data = collect_offline_data(envs.make(name, empty=True, seed=11, **options, **episode), steps)
     reach = DataDrivenReach.from_data(data, Zonotope(info.noise_center.double(), info.noise_generators.double()),
                                       translation_invariant_dims=info.position_dims, max_generators=30,
                                       body_frame=BodyFrame(info.position_dims, info.heading_dims) if body else None)

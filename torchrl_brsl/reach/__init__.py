@@ -7,7 +7,8 @@ from torchrl_brsl.reach.evaluation import SampledReach, points_outside, sample_r
 from torchrl_brsl.reach.examples import (BlackBoxSystem, CappedVelocityServo, DoubleIntegrator, KinematicBicycle,
                                         SaturatedThrustPoint, Unicycle)
 from torchrl_brsl.reach.hinges import (Features, feature_values, fit_features, fit_hinges, hinge_features,
-                                      product_features, product_relaxation, refine_knots, relu_relaxation)
+                                      product_features, product_relaxation, prune_hinges, refine_hinges,
+                                      relu_relaxation)
 from torchrl_brsl.reach.lipschitz import covering_radius, residual_lipschitz
 from torchrl_brsl.reach.offline import collect_offline_data, load_offline_data, save_offline_data
 
@@ -15,6 +16,6 @@ __all__ = ["METHODS", "BlackBoxSystem", "BodyFrame", "CappedVelocityServo", "Cel
            "DoubleIntegrator", "Features", "KinematicBicycle", "LeafLayout", "SampledReach", "SaturatedThrustPoint",
            "Unicycle", "collect_offline_data", "covering_radius", "feature_values", "fit_cells", "fit_features",
            "fit_hinges", "hinge_features", "input_relevance", "leaf_bounds", "leaf_distance", "leaf_layout",
-           "load_offline_data", "points_outside", "product_features", "product_relaxation", "refine_knots",
-           "relu_relaxation", "residual_lipschitz", "sample_reach", "save_offline_data", "split_directions", "stack_steps",
-           "tree_nodes"]
+           "load_offline_data", "points_outside", "product_features", "product_relaxation", "prune_hinges",
+           "refine_hinges", "relu_relaxation", "residual_lipschitz", "sample_reach", "save_offline_data",
+           "split_directions", "stack_steps", "tree_nodes"]
