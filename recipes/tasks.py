@@ -73,8 +73,9 @@ def offline_data(task: DictConfig, cache_dir: str | Path, seed: int = 0, local: 
     """Random-input transitions in the empty task, cached on disk.
 
     ``task.offline.steps`` of them for the main model, or with ``local``, ``task.local.steps``
-    with inputs drawn inside the local domain's action bounds. The cache key covers the task
-    config, the state layout, the seed and the model kind.
+    with inputs drawn inside the local domain's action bounds; ``episode_steps`` (when set) ends
+    each offline episode that soon, so the data see more of what a reset draws (a new wind). The
+    cache key covers the task config, the state layout, the seed and the model kind.
     """
     options = task.local if local else task.offline
     info = envs.safety_info(task.name)
@@ -92,7 +93,9 @@ def offline_data(task: DictConfig, cache_dir: str | Path, seed: int = 0, local: 
     else:
         max_speed = task.offline.get("max_speed")
         policy = regime_policy(task, float(max_speed)) if max_speed is not None else None
-    data = collect_offline_data(make_base_env(task, seed + 12345, empty=True), int(options.steps), policy=policy)
+    episode = {} if options.get("episode_steps") is None else {"episode_steps": int(options.episode_steps)}
+    data = collect_offline_data(make_base_env(task, seed + 12345, empty=True, **episode), int(options.steps),
+                                policy=policy)
     path.parent.mkdir(parents=True, exist_ok=True)
     save_offline_data(data, path)
     return data
