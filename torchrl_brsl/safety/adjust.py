@@ -67,7 +67,7 @@ class GradientAdjuster:
         start = time.perf_counter() if start is None else start
         if checker.uses_lp(obstacles):  # the LP's values have no facets: gradients by autograd through it
             return self._autograd(checker, x0, plan, obstacles, start)
-        affine = checker._affine_for(x0, plan) if self._analytic and not plan.requires_grad else None
+        affine = checker.affine_for(x0, plan) if self._analytic and not plan.requires_grad else None
         if affine is None:
             if self._analytic and not plan.requires_grad and _feedback_linearisable(checker, x0, plan):
                 with torch.no_grad():
@@ -218,7 +218,7 @@ class FacetQPAdjuster:
             reference = reference.to(plan)
         low, high = checker.action_low, checker.action_high
         ref_eval, gauge = checker.evaluate_with_gauge(x0, reference, obstacles)
-        affine = checker._affine_for(x0, reference)
+        affine = checker.affine_for(x0, reference)
         if affine is None and _feedback_linearisable(checker, x0, reference):  # braking policy: linearised tail
             jacobian = _feedback_jacobian(checker, ref_eval.centers, horizon)  # [B, T, n, N]
             pos_jac = jacobian[:, :, checker.position_dims]  # [B, T, d, N]
@@ -287,14 +287,12 @@ class FacetQPAdjuster:
     def _box(checker: PlanChecker, horizon: int, like: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """Per plan length: the action range per variable ``[N]``, the box rows ``[2N, N]`` and the
         upper and lower bounds ``[N]`` (cached on the checker, whose bounds are fixed)."""
-        key = ("box", horizon, like.dtype, like.device)
-        cached = checker._affine.get(key)
-        if cached is None:
+        def build():
             low, high = checker.action_low.to(like), checker.action_high.to(like)
             eye = torch.eye(horizon * low.shape[0], dtype=like.dtype, device=like.device)
-            cached = ((high - low).repeat(horizon), torch.cat((eye, -eye)), high.repeat(horizon), low.repeat(horizon))
-            checker._affine[key] = cached
-        return cached
+            return (high - low).repeat(horizon), torch.cat((eye, -eye)), high.repeat(horizon), low.repeat(horizon)
+
+        return checker.memo(("box", horizon, like.dtype, like.device), build)
 
 
 def _first_safe(checker: PlanChecker, x0: Tensor, reference: Tensor, step: Tensor, obstacles: Obstacles,
@@ -337,12 +335,11 @@ def _feedback_jacobian(checker: PlanChecker, centers: Tensor, plan_steps: int) -
     reach = checker.reach
     n_envs, horizon, n = centers.shape
     m = reach.action_dim
-    key = ("plan jacobian", plan_steps, centers.dtype, centers.device)
-    if key not in checker._affine:
-        _, transfer, _ = reach._transfer(horizon)
-        blocks = transfer.view(horizon, n, horizon, m)[:plan_steps, :, :plan_steps]
-        checker._affine[key] = blocks.reshape(plan_steps, n, plan_steps * m).to(centers).contiguous()
-    plan_part = checker._affine[key]  # [P, n, P m]
+    def build():
+        blocks = reach._transfer(horizon)[1].view(horizon, n, horizon, m)[:plan_steps, :, :plan_steps]
+        return blocks.reshape(plan_steps, n, plan_steps * m).to(centers).contiguous()
+
+    plan_part = checker.memo(("plan jacobian", plan_steps, centers.dtype, centers.device), build)  # [P, n, P m]
     jacobians = [plan_part.expand(n_envs, *plan_part.shape)]
     n_tail = horizon - plan_steps
     if n_tail:

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import copy
 import warnings
-from typing import NamedTuple, Sequence
+from typing import Any, Callable, NamedTuple, Sequence
 
 import torch
 from torch import Tensor
@@ -137,7 +137,7 @@ class PlanChecker:
         self._obstacle_generators: Tensor | None = None
         self._checker: ZonotopeCollisionChecker | None = None
         self._columns: tuple[Tensor, ...] = ()
-        self._affine: dict = {}
+        self._memo: dict = {}
         self._position_index = _index(self.position_dims)
         self._stop_index = _index(self.stop_dims)
         self._threshold = 1 + self.margin
@@ -224,10 +224,16 @@ class PlanChecker:
         A = self.reach.state_matrix
         dtype = A.dtype if dtype is None else dtype
         device = A.device if device is None else device
-        key = (int(plan_steps), dtype, device)
-        if key not in self._affine:
-            self._affine[key] = self._build_affine(int(plan_steps)).to(dtype, device)
-        return self._affine[key]
+        return self.memo(("affine", int(plan_steps), dtype, device),
+                         lambda: self._build_affine(int(plan_steps)).to(dtype, device))
+
+    def memo(self, key: tuple, build: Callable[[], Any]) -> Any:
+        """``build()``, computed once per ``key`` and kept: tables that depend only on the checker's
+        fixed model, failsafe and bounds (its affine rollouts; the adjusters' box rows and Jacobian
+        blocks)."""
+        if key not in self._memo:
+            self._memo[key] = build()
+        return self._memo[key]
 
     def _build_affine(self, plan_steps: int) -> AffineRollout:
         horizon, n, m = self.horizon, self.reach.state_dim, self.reach.action_dim
@@ -249,7 +255,7 @@ class PlanChecker:
             stop_jacobian=by_step[:, -1, self.stop_dims].T.contiguous(),
         )
 
-    def _affine_for(self, x0: Tensor, plan: Tensor) -> AffineRollout | None:
+    def affine_for(self, x0: Tensor, plan: Tensor) -> AffineRollout | None:
         """:meth:`affine` when it applies to this batch: open-loop braking, ``x0`` ``[B, n]`` and
         ``plan`` ``[B, P, m]`` in the model's dtype."""
         if (self.failsafe.policy is not None or self.plan_dependent or x0.ndim != 2 or plan.ndim != 3
@@ -272,7 +278,7 @@ class PlanChecker:
             return actions, sets.center
         n_tail = self.horizon - plan.shape[-2]
         if self.failsafe.policy is None:  # open-loop braking: the whole sequence is affine in the plan
-            affine = self._affine_for(x0, plan)
+            affine = self.affine_for(x0, plan)
             if affine is not None:
                 n_envs, plan_steps, m = plan.shape
                 centers = torch.addmm(affine.constant, x0.to(plan.dtype), affine.state_map)
