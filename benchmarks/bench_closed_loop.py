@@ -6,8 +6,8 @@ without the layer, the shares of steps with intervention, failsafe, ``unverified
 plans. One-action proposals (``n_plan = 1``) then the task's braking steps (``--n-brk`` for
 the uncapped servos), stop slack 0.15, the facet-QP adjuster, ``--steps`` offline transitions.
 
-Usage: ``python benchmarks/bench_closed_loop.py [--task point_boxes] [--steps 1000] [--episodes 40]
-[--servo capped|uncapped|both] [--models global,local,body]``
+Usage: ``python benchmarks/bench_closed_loop.py [--task point_boxes] [--robot kinematic] [--steps 1000]
+[--episodes 40] [--servo capped|uncapped|both] [--models global,local,body]``
 """
 from __future__ import annotations
 
@@ -27,7 +27,7 @@ UNCAPPED = {"diffdrive_nav": {"max_acceleration": None, "max_turn_acceleration":
 
 
 def run(task: str, options: dict, reach: DataDrivenReach | None, n_brk: int, episodes: int, episode: int) -> dict:
-    info = envs.safety_info(task)
+    info = envs.safety_info(task, robot=options.get("robot", "kinematic"))
     base = SerialEnv(N_ENVS, [functools.partial(envs.make, task, seed=100 + i, episode_steps=episode, **options)
                               for i in range(N_ENVS)])
     env = base
@@ -79,6 +79,7 @@ def _final_sets(layer: BRSLSafetyLayer, state, plan):
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--task", default="point_boxes")
+    parser.add_argument("--robot", default="kinematic", help="the task's robot (e.g. wheeled, rotor)")
     parser.add_argument("--steps", type=int, default=1000, help="offline transitions")
     parser.add_argument("--episodes", type=int, default=40)
     parser.add_argument("--episode-steps", type=int, default=60)
@@ -89,12 +90,13 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
     task = args.task
-    info = envs.safety_info(task)
+    info = envs.safety_info(task, robot=args.robot)
     noise = Zonotope(info.noise_center.double(), info.noise_generators.double())
     print(f"{'servo':<10}{'model':<8}{'collisions':>12}{'speed':>8}{'vs none':>9}{'interv.':>9}{'failsafe':>9}"
           f"{'hold':>7}{'no data':>9}{'radius':>8}")
     uncapped = UNCAPPED.get(task, {"max_acceleration": None})
-    settings = (("capped", {}, info.n_brk), ("uncapped", uncapped, args.n_brk or info.n_brk))
+    robot = {} if args.robot == "kinematic" else {"robot": args.robot}
+    settings = (("capped", robot, info.n_brk), ("uncapped", {**uncapped, **robot}, args.n_brk or info.n_brk))
     for servo, options, n_brk in (s for s in settings if args.servo in (s[0], "both")):
         torch.manual_seed(0)
         data = collect_offline_data(envs.make(task, empty=True, seed=1, **options), args.steps)

@@ -13,8 +13,7 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig
 
-import envs
-from recipes.tasks import make_base_env, offline_data
+from recipes.tasks import make_base_env, offline_data, task_info
 from torchrl_brsl.baselines import (
     AffineModel,
     LinearSafetyModel,
@@ -62,7 +61,7 @@ def _check_signals(cfg: DictConfig, env) -> None:
 def fit(cfg: DictConfig, cache_dir: str | Path) -> dict:
     """The baseline's models from the task's offline data (cached like BRSL's)."""
     baseline = name(cfg)
-    info = envs.safety_info(cfg.task.name)
+    info = task_info(cfg.task)
     data = offline_data(cfg.task, cache_dir, cfg.seed)
     env = make_base_env(cfg.task, cfg.seed + 54321)
     _check_signals(cfg, env)
@@ -92,7 +91,7 @@ def load(run_dir: str | Path) -> dict:
 def make_transform(cfg: DictConfig, models: dict, evaluation: bool = False):
     """The baseline's transform, with the task's SafetyInfo (diagnostics under ``"baseline"``)."""
     baseline = name(cfg)
-    info = envs.safety_info(cfg.task.name)
+    info = task_info(cfg.task)
     low, high = info.action_low.double(), info.action_high.double()
     penalty = float(cfg.method.get("penalty", 0.0))
     if baseline == "secas":

@@ -8,8 +8,7 @@ from typing import Callable, NamedTuple
 from omegaconf import DictConfig
 from torch import Tensor
 
-import envs
-from recipes.tasks import local_domain, offline_data
+from recipes.tasks import local_domain, offline_data, task_info
 from torchrl_brsl.reach import BodyFrame, DataDrivenReach
 from torchrl_brsl.safety import BRSLSafetyLayer, Failsafe
 from torchrl_brsl.sets import Zonotope
@@ -25,7 +24,7 @@ class SafetyModels(NamedTuple):
     @classmethod
     def fit(cls, cfg: DictConfig, cache_dir: str | Path) -> SafetyModels:
         """Offline data (cached) and the fitted models."""
-        info = envs.safety_info(cfg.task.name)
+        info = task_info(cfg.task)
         noise = Zonotope(info.noise_center.double(), info.noise_generators.double())
         method = cfg.method.get("reach", "local")
         if method == "auto":  # the task's choice
@@ -73,7 +72,7 @@ def layer_settings(cfg: DictConfig) -> LayerSettings:
     action and the braking tail, ``1 + n_brk`` sets, rather than sets that keep growing
     after the robot has stopped.
     """
-    info = envs.safety_info(cfg.task.name)
+    info = task_info(cfg.task)
     safety = cfg.task.safety
 
     def resolved(key: str) -> int:

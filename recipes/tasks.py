@@ -23,6 +23,11 @@ def make_base_env(task: DictConfig, seed: int, *, layout: int | None = None, emp
     return envs.make(task.name, seed=seed, empty=empty, layout=layout, **options)
 
 
+def task_info(task: DictConfig) -> envs.SafetyInfo:
+    """``envs.safety_info`` of the task's robot (``task.env.robot``, the task's default when absent)."""
+    return envs.safety_info(task.name, robot=(task.get("env") or {}).get("robot"))
+
+
 def task_kind(task: DictConfig) -> str:
     """``"goal"`` (Table I: diffdrive_nav, quadrotor_nav) or ``"path"`` (Table II)."""
     return str(task.kind)
@@ -44,7 +49,7 @@ def regime_policy(task: DictConfig, max_speed: float):
     Keeps the offline data in the operating regime: e.g. ``point_circle`` below its 2 m/s speed
     saturation, where its dynamics are linear and the data-driven sets stay tight.
     """
-    info = envs.safety_info(task.name)
+    info = task_info(task)
     low, high = info.action_low, info.action_high
     uniform = uniform_policy(low, high)
 
@@ -60,7 +65,7 @@ def regime_policy(task: DictConfig, max_speed: float):
 
 def local_domain(task: DictConfig) -> tuple[torch.Tensor, torch.Tensor]:
     """``(low, high)`` ``[n + m]`` of ``task.local`` (``null`` bounds: unbounded)."""
-    info = envs.safety_info(task.name)
+    info = task_info(task)
     bounds = []
     for side, default in (("low", -np.inf), ("high", np.inf)):
         state = task.local.get(f"state_{side}") or [default] * info.state_dim
@@ -78,7 +83,7 @@ def offline_data(task: DictConfig, cache_dir: str | Path, seed: int = 0, local: 
     cache key covers the task config, the state layout, the seed and the model kind.
     """
     options = task.local if local else task.offline
-    info = envs.safety_info(task.name)
+    info = task_info(task)
     spec = {"task": task.name, "state_dim": info.state_dim, "env": OmegaConf.to_container(task.env, resolve=True),
             "offline": OmegaConf.to_container(options, resolve=True), "seed": seed, "local": local}
     digest = hashlib.sha1(json.dumps(spec, sort_keys=True).encode()).hexdigest()[:10]
