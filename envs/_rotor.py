@@ -65,6 +65,7 @@ from dm_control import mujoco as dm_mujoco
 
 from envs._aerial import MAX_ACCELERATION, airframe_visuals, arena_xml
 from envs._mjcf import with_actuators
+from envs._task import task_environment
 
 TIMESTEP = 0.005
 GRAVITY = 9.81
@@ -349,3 +350,20 @@ class RotorTask:
 
     def _apply_action(self, action, physics) -> None:
         self._controller.command = action.tolist()
+
+
+def aerial_environment(tasks: dict, robot: str, max_acceleration: float | None, **options):
+    """The environment of an aerial task's ``robot``, one of ``tasks`` (``{"kinematic": cls, "rotor": cls}``).
+
+    ``max_acceleration`` caps the kinematic robot's servos; the rotor robot's velocity loop has its own
+    limit (:data:`~envs._aerial.MAX_ACCELERATION`), so any other value is an error for it.
+    """
+    if robot not in tasks:
+        raise ValueError(f"unknown robot {robot!r} for {tasks['kinematic'].name}; choose one of {tuple(tasks)}")
+    task = tasks[robot]
+    if robot == "kinematic":
+        return task_environment(task, task.model, max_acceleration=max_acceleration, **options)
+    if max_acceleration != MAX_ACCELERATION:
+        raise ValueError("max_acceleration applies to robot='kinematic' only; the rotor robot's velocity loop "
+                         f"asks for {MAX_ACCELERATION} m/s^2 per axis at most")
+    return task_environment(task, task.model, **options)

@@ -42,8 +42,7 @@ from dm_control.rl import control
 from envs import _rotor
 from envs._aerial import ARENA, MAX_ACCELERATION, N_BOUNDARY, AerialTask, boundary, draw_obstacle
 from envs._obstacles import KeepOut, Layout, Obstacle, place_obstacles
-from envs._rotor import HEXAROTOR, RotorTask
-from envs._task import task_environment
+from envs._rotor import HEXAROTOR, RotorTask, aerial_environment
 
 N_CHECKPOINTS = 10
 CHECKPOINT_RADIUS = 1.0
@@ -52,7 +51,6 @@ RING_HEIGHT = 2.5
 MAX_WIND = 3.0
 DRAG = 0.5
 INTEGRAL_GAIN = 0.5
-ROBOTS = ("kinematic", "rotor")
 _N_PILLARS = 4
 _N_BOXES = 4
 
@@ -217,6 +215,7 @@ class RotorHexarotorWind(RotorTask, HexarotorWind):
 
 #: the task class of each robot (``robot`` of :func:`build_environment`)
 ROBOT_TASKS = {"kinematic": HexarotorWind, "rotor": RotorHexarotorWind}
+ROBOTS = tuple(ROBOT_TASKS)
 
 
 def build_environment(
@@ -245,11 +244,4 @@ def build_environment(
         >>> env.reset().observation["obstacles_center"].shape
         (14, 3)
     """
-    if robot not in ROBOTS:
-        raise ValueError(f"unknown robot {robot!r} for hexarotor_wind; choose one of {ROBOTS}")
-    if robot == "kinematic":
-        return task_environment(HexarotorWind, HexarotorWind.model, max_acceleration=max_acceleration, **options)
-    if max_acceleration != MAX_ACCELERATION:
-        raise ValueError("max_acceleration applies to robot='kinematic' only; the rotor robot's velocity loop "
-                         f"asks for {MAX_ACCELERATION} m/s^2 per axis at most")
-    return task_environment(RotorHexarotorWind, RotorHexarotorWind.model, **options)
+    return aerial_environment(ROBOT_TASKS, robot, max_acceleration, **options)

@@ -24,11 +24,9 @@ from dm_control.rl import control
 
 from envs._aerial import ARENA, MAX_ACCELERATION, N_BOUNDARY, AerialTask, boundary, draw_obstacle
 from envs._obstacles import KeepOut, Layout, place_obstacles
-from envs._rotor import QUADROTOR, RotorTask
-from envs._task import task_environment
+from envs._rotor import QUADROTOR, RotorTask, aerial_environment
 
 GOAL_RADIUS = 0.75
-ROBOTS = ("kinematic", "rotor")
 _N_PILLARS = 6
 _N_BOXES = 6
 
@@ -106,6 +104,7 @@ class RotorQuadrotorNav(RotorTask, QuadrotorNav):
 
 #: the task class of each robot (``robot`` of :func:`build_environment`)
 ROBOT_TASKS = {"kinematic": QuadrotorNav, "rotor": RotorQuadrotorNav}
+ROBOTS = tuple(ROBOT_TASKS)
 
 
 def build_environment(
@@ -133,11 +132,4 @@ def build_environment(
         >>> bool(env.reset().observation["obstacles_mask"].any())
         False
     """
-    if robot not in ROBOTS:
-        raise ValueError(f"unknown robot {robot!r} for quadrotor_nav; choose one of {ROBOTS}")
-    if robot == "kinematic":
-        return task_environment(QuadrotorNav, QuadrotorNav.model, max_acceleration=max_acceleration, **options)
-    if max_acceleration != MAX_ACCELERATION:
-        raise ValueError("max_acceleration applies to robot='kinematic' only; the rotor robot's velocity loop "
-                         f"asks for {MAX_ACCELERATION} m/s^2 per axis at most")
-    return task_environment(RotorQuadrotorNav, RotorQuadrotorNav.model, **options)
+    return aerial_environment(ROBOT_TASKS, robot, max_acceleration, **options)
