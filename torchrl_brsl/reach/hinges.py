@@ -6,9 +6,10 @@ the narrow linear ramp between two kinks needs more points than random data put 
 hinge ``relu(a · z - c)`` at each kink makes the whole function affine in ``(z, h(z))``, so the
 leaves' fits leave noise instead of the kink. The hinges are chosen by greedy forward
 selection, as in multivariate adaptive regression splines (Friedman, "Multivariate adaptive
-regression splines", Ann. Statist. 1991), over the split directions and a grid of knots, and
-their coefficients are fitted once on all data: a leaf then fits its share of what the hinges
-leave, so no leaf extrapolates a hinge its own data never showed bending.
+regression splines", Ann. Statist. 1991), starting from the split directions and a grid of
+knots, each hinge's direction and knot then moved to the kink (a hinging-hyperplane fit); their
+coefficients are fitted once on all data: a leaf then fits its share of what the hinges leave,
+so no leaf extrapolates a hinge its own data never showed bending.
 
 Over a reachable set the hinge is replaced by its zonotope relaxation (Singh et al., "Fast and
 effective robustness certification", NeurIPS 2018): with ``s = a · z - c ∈ [l, u]`` and
@@ -83,14 +84,15 @@ def fit_features(features: Tensor, directions: Tensor, inputs: Tensor, target: T
     in the state over a set (the action is exact), so its relaxation adds no error; products of
     two states would add the product of their radii at every step.
 
-    After a hinge joins, every hinge's direction and knot move off the grid together
-    (:func:`refine_hinges`): a kink between grid knots, or along a direction no candidate
-    follows (a differential drive's wheel speeds clip along ``(u_v - v) ± (track / 2)(u_ω -
-    ω)``, four kinks that each remove little alone), ends up fitted by one hinge. Selection stops
-    when a step removes less than :data:`MIN_GAIN` of the residual beyond the noise's variance (or
-    less than :data:`NOISE_GAIN` times the variance), or the residual is down to it; then hinges
-    that the others made redundant are dropped (:func:`prune_hinges`). The coefficients are the features' in the
-    final least-squares fit.
+    When a hinge is best, every hinge's direction and knot move off the grid together
+    (:func:`refine_hinges`), from each of the :data:`STARTS` best grid directions: a kink between
+    grid knots, or along a direction no candidate follows (a differential drive's wheel speeds
+    clip along ``(u_v - v) ± (track / 2)(u_ω - ω)``, four kinks that each remove little alone),
+    ends up fitted by one hinge. The best refined hinge is judged on held-out data (two-fold
+    cross-validation). Selection stops when a step removes less than :data:`MIN_GAIN` of the
+    residual beyond the noise's variance (or less than :data:`NOISE_GAIN` times the variance),
+    or the residual is down to it; then hinges that the others made redundant are dropped
+    (:func:`prune_hinges`). The coefficients are the features' in the final least-squares fit.
 
     Args:
         features: ``[N, f]`` ``inputs @ directions.T``.
@@ -116,9 +118,9 @@ def fit_features(features: Tensor, directions: Tensor, inputs: Tensor, target: T
     for _ in range(max_features):
         regressors = torch.cat((base, hinge_features(inputs, hinge_dirs, hinge_knots)), dim=1)
         gain, remaining = _gains(regressors, candidates, target)
-        best = int(gain.argmax())
         if remaining <= floor:
             break
+        best = int(gain.argmax())
         if best >= grid.shape[1]:  # a product: its gain is exact
             if float(gain[best]) < _least_gain(remaining, floor, n_points):
                 break
