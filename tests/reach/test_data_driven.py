@@ -275,3 +275,21 @@ def test_from_env_draws_its_inputs_from_the_generator():
                                      translation_invariant_dims=info.position_dims) for seed in (0, 0, 1)]
     assert torch.equal(fits[0].u_minus, fits[1].u_minus)
     assert not torch.equal(fits[0].u_minus, fits[2].u_minus)
+
+
+def test_domain_from_the_data_is_their_box_with_the_invariant_dims_unbounded():
+    system = DoubleIntegrator()
+    x, xp, u = system.offline_data(300, torch.Generator().manual_seed(0))
+    keep = (x[:, 2:].abs() <= 0.4).all(-1)  # low-speed data, as a user would collect for a local model
+    slow = DataDrivenReach.fit(x[keep], xp[keep], u[keep], system.noise, translation_invariant_dims=(0, 1),
+                               method="global", domain="data")
+    points = torch.cat((x[keep], u[keep]), dim=1)
+    assert slow.bounded_domain and slow.x_minus.shape[0] == int(keep.sum())  # nothing of its own data is dropped
+    assert torch.isinf(slow.domain_low[:2]).all() and torch.isinf(slow.domain_high[:2]).all()
+    assert torch.equal(slow.domain_low[2:], points.amin(0)[2:]) and torch.equal(slow.domain_high[2:], points.amax(0)[2:])
+    fast = Zonotope.from_point(torch.tensor([0.0, 0.0, 1.5, 0.0], dtype=torch.float64))  # a speed it never saw
+    assert not bool(slow.in_domain(fast.unsqueeze(0), u[:1]))
+    with pytest.raises(ValueError, match="'data'"):
+        DataDrivenReach.fit(x, xp, u, system.noise, domain="box")
+    with pytest.raises(ValueError, match="do not vary on dims"):
+        DataDrivenReach.fit(x, xp, torch.cat((u[:, :1], torch.zeros_like(u[:, 1:])), 1), system.noise, domain="data")

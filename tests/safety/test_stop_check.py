@@ -1,13 +1,15 @@
-"""The stop check's default tolerance, and a warning when the check certifies nothing."""
+"""The stop check's default tolerance, its cap on a low-speed model, and a warning when the check certifies nothing."""
 import warnings
 
 import pytest
 import torch
 
 import envs
-from torchrl_brsl.safety import DEFAULT_STOP_SLACK, BRSLSafetyLayer, Failsafe
+from torchrl_brsl.reach import DataDrivenReach, collect_offline_data
+from torchrl_brsl.safety import DEFAULT_STOP_SLACK, BRSLSafetyLayer, Failsafe, PlanChecker
+from torchrl_brsl.sets import Zonotope
 
-from safety_support import fitted_reach
+from safety_support import fitted_reach, make_env
 
 TASK = "point_boxes"
 INFO = envs.safety_info(TASK)
@@ -44,3 +46,26 @@ def test_a_tolerance_beyond_the_top_speed_warns_that_the_check_certifies_nothing
     # one dim only: a per-dim tolerance beyond the top speed there
     with pytest.warns(UserWarning, match=r"stop dims \[3\]"):
         layer(method, stop_slack=[0.1, float(top[1]) + 0.01])
+
+
+def test_a_low_speed_model_caps_the_slack_at_half_its_top_speed_and_does_not_warn():
+    noise = Zonotope(INFO.noise_center.double(), INFO.noise_generators.double())
+    gen = torch.Generator().manual_seed(0)
+    data = collect_offline_data(make_env(TASK, empty=True, seed=3), 600,
+                                policy=lambda td: td.set("action", (torch.rand(2, generator=gen) * 2 - 1) * 0.12))
+    slow = data[(data["x_minus"][:, 2:].abs() <= 0.15).all(-1)]  # the starts of the empty task are fast
+    failsafe = Failsafe(INFO.braking_action, INFO.n_brk)
+    kwargs = dict(stop_dims=INFO.velocity_dims, action_low=INFO.action_low.double(),
+                  action_high=INFO.action_high.double())
+    unbounded = DataDrivenReach.from_data(slow, noise, translation_invariant_dims=INFO.position_dims, method="global")
+    top = torch.cat((unbounded.x_minus, unbounded.x_plus))[:, list(INFO.velocity_dims)].abs().amax(0)
+    assert bool((top < DEFAULT_STOP_SLACK).all())  # the default slack would call every state of these data stopped
+    with pytest.warns(UserWarning, match="certifies nothing"):
+        PlanChecker(unbounded, failsafe, INFO.n_plan + INFO.n_brk, **kwargs)
+    local = DataDrivenReach.from_data(slow, noise, translation_invariant_dims=INFO.position_dims, method="global",
+                                      domain="data")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        checker = PlanChecker(local, failsafe, INFO.n_plan + INFO.n_brk, **kwargs)
+    assert torch.allclose(checker.stop_slack, top / 2)
+    assert checker.vacuous_stop_dims() == []

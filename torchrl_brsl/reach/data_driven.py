@@ -96,7 +96,7 @@ class DataDrivenReach(nn.Module):
     @classmethod
     def fit(cls, x_minus, x_plus, u_minus, noise: Zonotope, translation_invariant_dims: Sequence[int] = (),
             max_generators: int | None = None, n_neighbors: int = 10, lipschitz_margin: float | None = None,
-            domain: tuple | None = None, method: str = "local", leaf_size: int | None = None,
+            domain: tuple | str | None = None, method: str = "local", leaf_size: int | None = None,
             overlap: float = 0.15, extend: float = 0.25, features: bool = True, body_frame: BodyFrame | None = None,
             dtype: torch.dtype = torch.float64) -> DataDrivenReach:
         """Fit the model and its error zonotope from offline transitions.
@@ -116,7 +116,11 @@ class DataDrivenReach(nn.Module):
                 first version of the cells let 2 of 39,000 out) and 1.0 for ``"global"``.
             domain: ``(low, high)``, each ``[n + m]`` bounds on ``(x, u)`` (``±inf`` for none):
                 the transitions outside are dropped and the model claims nothing outside
-                (see the class docstring). ``None``: no restriction.
+                (see the class docstring). ``"data"``: the bounding box of the data's
+                ``(x_minus, u_minus)``, unbounded on the translation-invariant dims and a body
+                frame's heading (a model of low-speed data then claims nothing at speeds it
+                never saw). ``None``: no
+                restriction.
             method: ``"local"`` (default): affine models on regression-tree leaves of the data
                 with set-membership error bounds (:mod:`torchrl_brsl.reach.cells`), chosen per
                 step by the set itself; ``"global"``: one affine fit for the whole data region
@@ -157,6 +161,8 @@ class DataDrivenReach(nn.Module):
         heading = () if body_frame is None else body_frame.heading_dims
         identity = fixed + ([body_frame.heading] if body_frame is not None and body_frame.angle else [])
         free = [d for d in range(n) if d not in fixed and d not in heading]
+        if isinstance(domain, str):
+            domain = _data_domain(domain, x_minus, u_minus, fixed + list(heading))
         domain_low, domain_high = _domain(domain, n + m, dtype)
         if domain is not None:
             points = torch.cat((x_minus, u_minus), dim=1)
@@ -590,6 +596,20 @@ def _local_params(cells: Cells, scale: Tensor, free: list[int], select: Tensor, 
                 cell_hinge_directions=cells.hinge_directions, cell_hinge_knots=cells.hinge_knots,
                 cell_product_directions=cells.product_directions, cell_product_knots=cells.product_knots,
                 cell_members=cells.members)
+
+
+def _data_domain(domain: str, x_minus: Tensor, u_minus: Tensor, fixed: list[int]) -> tuple[Tensor, Tensor]:
+    """``domain="data"``: the data's bounding box on ``(x, u)``, unbounded on the invariant dims ``fixed``."""
+    if domain != "data":
+        raise ValueError(f"`domain` must be a pair (low, high), 'data' or None, got {domain!r}")
+    points = torch.cat((x_minus, u_minus), dim=1)
+    low, high = points.amin(0), points.amax(0)
+    low[fixed], high[fixed] = -torch.inf, torch.inf
+    flat = (low >= high).nonzero().flatten().tolist()
+    if flat:
+        raise ValueError(f"`domain='data'`: the data do not vary on dims {flat} of (state, action), so their box is "
+                         "empty there; give the domain as (low, high)")
+    return low, high
 
 
 def _domain(domain, size: int, dtype: torch.dtype) -> tuple[Tensor, Tensor]:

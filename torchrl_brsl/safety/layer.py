@@ -111,7 +111,8 @@ class BRSLSafetyLayer(Transform):
             never adjust.
         penalty: reward penalty for unsafe proposals.
         local_reach: an optional second model of a restricted domain (see above), with the
-            same state and action dims.
+            same state and action dims; its stop slack is at most half the top speed of its
+            data (:class:`PlanChecker`).
         set_generators: generator width of the projected reachable sets.
         margin: sets count as colliding when ``v* <= 1 + margin``.
         collision: ``"auto"`` (the closed form for zonotope obstacles in 1-3 D, else the

@@ -79,7 +79,11 @@ class PlanChecker:
         stop_slack: instead of ``stop_tolerance``: the final set's interval must lie within
             ``stop_slack`` of its own radius around rest, i.e. ``|final centre| <= stop_slack``
             on the stop dims (the tolerance is the set's radius plus the slack, per plan).
-            Without either, ``stop_slack`` = :data:`DEFAULT_STOP_SLACK`. A stop check that no
+            Without either, ``stop_slack`` = :data:`DEFAULT_STOP_SLACK`. For a model of a
+            restricted domain (``reach.bounded_domain``, e.g. a low-speed model) the slack is at
+            most half the largest ``|value|`` its data reach on each stop dim: a slack chosen for
+            the robot's full speed (0.15 m/s) would call every state of data below 0.1 m/s
+            stopped. A stop check that no
             state of the offline data could fail (tolerance at or beyond the largest
             ``|value|`` the data reach on a stop dim) tests nothing and raises a
             ``UserWarning`` saying so: see :meth:`vacuous_stop_dims`.
@@ -126,6 +130,9 @@ class PlanChecker:
             stop_slack = DEFAULT_STOP_SLACK
         self.stop_slack = None if stop_slack is None else torch.as_tensor(stop_slack, dtype=dtype).expand(
             len(self.stop_dims))
+        top = self._top_speed()
+        if self.stop_slack is not None and reach.bounded_domain and top is not None:
+            self.stop_slack = torch.minimum(self.stop_slack, top.to(dtype) / 2)
         if stop_tolerance is None:
             stop_tolerance = self.stop_radius + self.stop_slack
         self.stop_tolerance = torch.as_tensor(stop_tolerance, dtype=dtype).expand(len(self.stop_dims))
