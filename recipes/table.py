@@ -28,7 +28,8 @@ from recipes.tasks import task_kind
 
 #: the paper's column order; its names for the columns
 METHODS = ["brsl", "rts", "sailr", "secas", "td3"]
-LABELS = {"brsl": "BRSL", "rts": "RTS", "sailr": "SAILR", "secas": "SECAS", "td3": "Baseline"}
+LABELS = {"brsl": "BRSL", "rts": "RTS", "sailr": "SAILR", "secas": "SECAS", "td3": "Baseline",
+          "brsl_ensemble": "BRSL (ensemble planner)", "brsl_executed": "BRSL (learns executed)"}
 #: the paper's tasks per table (others of the same kind follow), with its names for them
 TASKS = {"goal": ["diffdrive_nav", "quadrotor_nav"], "path": ["point_circle", "hexarotor_wind"]}
 TASK_LABELS = {"diffdrive_nav": "Turtlebot", "quadrotor_nav": "Quadrotor", "point_circle": "Point",
@@ -42,7 +43,9 @@ ROWS = {
              ("compute_time", "Compute Time [ms]", None)],
 }
 EXTRA = [("train_collision_steps", "Collision steps in training", "{:.0f}"),
-         ("intervention_rate", "Interventions [share of steps]", "{:.2f}"), ("seeds", "Seeds", "{:.0f}")]
+         ("intervention_rate", "Interventions [share of steps]", "{:.2f}"),
+         ("failsafe_rate", "Failsafe [share of steps]", "{:.2f}"),
+         ("unverified_hold_rate", "Unverified hold [share of steps]", "{:.2f}"), ("seeds", "Seeds", "{:.0f}")]
 
 
 def _read_eval(run_dir: Path) -> dict:
@@ -113,18 +116,25 @@ def cell(rows: list[dict] | None, key: str, fmt: str | None) -> str:
     return _mean_std([r.get(key, np.nan) for r in rows], fmt)
 
 
+def columns(results: dict) -> list[str]:
+    """The paper's methods, then any other run directory (an ablation such as ``brsl_ensemble``)."""
+    found = {m for r in results.values() for m in r["methods"]}
+    return METHODS + sorted(found - set(METHODS))
+
+
 def tables(results: dict) -> str:
-    """Table I and Table II in Markdown, the paper's layout (tasks side by side)."""
-    text = []
+    """Table I and Table II in Markdown, the paper's layout (tasks side by side); ablations (runs under
+    another method directory, e.g. ``method.name=brsl_ensemble``) follow the paper's columns."""
+    text, methods = [], columns(results)
     for kind, title in (("goal", "Table I: goal-based experiments"), ("path", "Table II: path following")):
         tasks = [t for t in TASKS[kind] if t in results] + sorted(
             t for t, r in results.items() if r["kind"] == kind and t not in TASKS[kind])
         if not tasks:
             continue
-        header = "| |" + "|".join(f" {TASK_LABELS.get(t, t)}: {LABELS[m]} " for t in tasks for m in METHODS) + "|"
-        lines = [f"**{title}** (mean ± std over seeds)", "", header, "|---" * (1 + len(tasks) * len(METHODS)) + "|"]
+        header = "| |" + "|".join(f" {TASK_LABELS.get(t, t)}: {LABELS.get(m, m)} " for t in tasks for m in methods)
+        lines = [f"**{title}** (mean ± std over seeds)", "", header + "|", "|---" * (1 + len(tasks) * len(methods)) + "|"]
         for key, label, fmt in ROWS[kind] + EXTRA:
-            cells = [cell(results[t]["methods"].get(m), key, fmt) for t in tasks for m in METHODS]
+            cells = [cell(results[t]["methods"].get(m), key, fmt) for t in tasks for m in methods]
             lines.append(f"| {label} | " + " | ".join(cells) + " |")
         text.append("\n".join(lines))
     return "\n\n".join(text)
