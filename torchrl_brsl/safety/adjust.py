@@ -7,8 +7,9 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from torchrl_brsl.reach import stack_steps
 from torchrl_brsl.safety.plan_check import AffineRollout, PlanChecker, PlanEvaluation
-from torchrl_brsl.sets import Obstacles
+from torchrl_brsl.sets import Obstacles, Zonotope
 
 
 class Adjustment(NamedTuple):
@@ -217,15 +218,17 @@ class FacetQPAdjuster:
         if reference.dtype != plan.dtype or reference.device != plan.device:
             reference = reference.to(plan)
         low, high = checker.action_low, checker.action_high
-        ref_eval, gauge = checker.evaluate_with_gauge(x0, reference, obstacles)
-        affine = checker.affine_for(x0, reference)
+        rollout = jacobian = None
+        if checker.plan_dependent:  # a local model: one rollout gives the reference's sets and their Jacobian
+            *rollout, jacobian = _leaf_rollout(checker, x0, reference)
+        ref_eval, gauge = checker.evaluate_with_gauge(x0, reference, obstacles, rollout=rollout)
+        affine = None if checker.plan_dependent else checker.affine_for(x0, reference)
         if affine is None and _feedback_linearisable(checker, x0, reference):  # braking policy: linearised tail
             jacobian = _feedback_jacobian(checker, ref_eval.centers, horizon)  # [B, T, n, N]
             pos_jac = jacobian[:, :, checker.position_dims]  # [B, T, d, N]
             stop_jac = jacobian[:, -1, checker.stop_dims]  # [B, s, N]
         elif affine is None:  # local model, or feedback braking: linearise along the reference's sets
-            linearise = _leaf_jacobian if checker.plan_dependent else _centre_jacobian
-            jacobian = linearise(checker, x0, reference)  # [B, T, n, P, m]
+            jacobian = _centre_jacobian(checker, x0, reference) if jacobian is None else jacobian  # [B, T, n, P, m]
             pos_jac = jacobian[:, :, checker.position_dims].flatten(-2)  # [B, T, d, N]
             stop_jac = jacobian[:, -1, checker.stop_dims].flatten(-2)  # [B, s, N]
         else:  # exact and shared by all envs
@@ -371,8 +374,9 @@ def _brake_derivative(checker: PlanChecker, states: Tensor) -> Tensor:
     return torch.stack(rows, dim=-2) * unclipped.unsqueeze(-1)
 
 
-def _leaf_jacobian(checker: PlanChecker, x0: Tensor, plan: Tensor) -> Tensor:
-    """``d centres / d plan`` ``[B, T, n, P, m]`` of a local model along the plan's own sets.
+def _leaf_rollout(checker: PlanChecker, x0: Tensor, plan: Tensor) -> tuple[Tensor, Zonotope, Tensor, Tensor]:
+    """:meth:`PlanChecker.rollout_sets` of a local model, ``(actions, sets, covered)``, and from the same
+    rollout ``d centres / d plan`` ``[B, T, n, P, m]`` along the plan's own sets.
 
     Each step maps the centres' directions with the leaf models and relaxations it chose
     (held fixed; :meth:`DataDrivenReach.step_sets` ``tangents``), and a braking policy's tail
@@ -385,7 +389,8 @@ def _leaf_jacobian(checker: PlanChecker, x0: Tensor, plan: Tensor) -> Tensor:
     center = x0.to(plan.dtype)
     generators = center.new_zeros(n_envs, reach.state_dim, 0)
     tangent = center.new_zeros(n_envs, reach.state_dim, n_vars)
-    jacobians = []
+    covered = torch.ones(n_envs, dtype=torch.bool, device=plan.device)
+    actions, centers, sets, jacobians = [], [], [], []
     for j in range(checker.horizon):
         if j < plan_steps:
             action, moved = plan[:, j], basis[j].expand(n_envs, m, n_vars)
@@ -394,9 +399,19 @@ def _leaf_jacobian(checker: PlanChecker, x0: Tensor, plan: Tensor) -> Tensor:
         else:
             action = checker.brake(center)
             moved = _brake_derivative(checker, center) @ tangent
-        center, generators, _, tangent = reach.step_sets(center, generators, action, (tangent, moved))
+        center, generators, inside, tangent = reach.step_sets(center, generators, action, (tangent, moved))
+        covered = covered & inside
+        actions.append(action)
+        centers.append(center)
+        sets.append(generators)
         jacobians.append(tangent)
-    return torch.stack(jacobians, dim=1).view(n_envs, checker.horizon, reach.state_dim, plan_steps, m)
+    jacobian = torch.stack(jacobians, dim=1).view(n_envs, checker.horizon, reach.state_dim, plan_steps, m)
+    return torch.stack(actions, dim=1), stack_steps(centers, sets), covered, jacobian
+
+
+def _leaf_jacobian(checker: PlanChecker, x0: Tensor, plan: Tensor) -> Tensor:
+    """``d centres / d plan`` ``[B, T, n, P, m]`` of a local model (:func:`_leaf_rollout`)."""
+    return _leaf_rollout(checker, x0, plan)[-1]
 
 
 def _centre_jacobian(checker: PlanChecker, x0: Tensor, plan: Tensor, eps: float = 1e-6) -> Tensor:

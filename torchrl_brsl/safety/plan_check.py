@@ -364,13 +364,14 @@ class PlanChecker:
         """
         return self.evaluate_with_gauge(x0, plan, obstacles, detail=False)[0]
 
-    def evaluate_with_gauge(self, x0: Tensor, plan: Tensor, obstacles: Obstacles,
-                            detail: bool = True) -> tuple[PlanEvaluation, Gauge | None]:
+    def evaluate_with_gauge(self, x0: Tensor, plan: Tensor, obstacles: Obstacles, detail: bool = True,
+                            rollout: tuple[Tensor, Zonotope, Tensor] | None = None) -> tuple[PlanEvaluation, Gauge | None]:
         """:meth:`evaluate`, with the signed facet products, the facet attaining each value and the
-        facet weights (``detail``): what the adjusters linearise (``None`` from the LP)."""
+        facet weights (``detail``): what the adjusters linearise (``None`` from the LP). ``rollout``:
+        the plan's :meth:`rollout_sets` when already at hand (a local model)."""
         lp = self.uses_lp(obstacles)
         if self.plan_dependent:
-            actions, sets, covered = self.rollout_sets(x0, plan)
+            actions, sets, covered = self.rollout_sets(x0, plan) if rollout is None else rollout
             centers = sets.center
             projected = self._projected(sets)
             if not lp:
