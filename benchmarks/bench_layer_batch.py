@@ -9,8 +9,10 @@ and speed), for ``B`` = 1, 4, 16, 64, in two regimes:
 - adjusting: a wall ahead of every robot and a full-speed proposal, so every env is adjusted
   (facet-locked QP) or falls back to braking.
 
-Printed per model (global fit, body-frame local model): the median time of one call, its ratio
-to one env, the time per env, and the share of envs in the failsafe at ``B = 64``. The goal is
+Every batch holds the first ``B`` of the same 64 robots; ``B = 1`` is the mean over the first 8, one
+at a time (a single robot's work depends on its heading and speed: one wall ahead is adjusted,
+another passes at once). Printed per model (global fit, body-frame local model): the median time of
+one call, its ratio to one env, the time per env, and the share of envs in the failsafe at ``B = 64``. The goal is
 64 envs in at most 4x the time of one.
 
 Usage: ``python benchmarks/bench_layer_batch.py [--quick] [--device cpu|cuda] [--models global,body]``
@@ -30,6 +32,7 @@ from torchrl_brsl.safety import BRSLSafetyLayer, Failsafe
 from torchrl_brsl.sets import Zonotope
 
 TASK, N_PLAN, BATCHES = "diffdrive_nav", 8, (1, 4, 16, 64)
+SINGLES = 8  # B = 1: the mean over this many of the envs, one at a time
 
 
 def make_layer(reach: DataDrivenReach, info, adjuster: str | None, device: torch.device) -> BRSLSafetyLayer:
@@ -38,12 +41,14 @@ def make_layer(reach: DataDrivenReach, info, adjuster: str | None, device: torch
                            action_high=info.action_high.to(device), adjuster=adjuster)
 
 
-def batch_inputs(info, n_envs: int, towards_wall: bool, device: torch.device) -> TensorDict:
-    """One step's TensorDict for ``n_envs`` robots at the origin with their own headings and speeds."""
+def batch_inputs(info, envs_: slice, towards_wall: bool, device: torch.device) -> TensorDict:
+    """One step's TensorDict for the robots ``envs_`` of 64 at the origin with their own headings and speeds
+    (the same 64 for every batch size, so that a batch holds the same work as its envs one by one)."""
     td = envs.make(TASK, seed=0, layout=0).reset()
-    gen = torch.Generator().manual_seed(n_envs)
-    heading = 2 * math.pi * torch.rand(n_envs, generator=gen, dtype=torch.float64)
-    speed = 0.05 + 0.15 * torch.rand(n_envs, generator=gen, dtype=torch.float64)
+    gen = torch.Generator().manual_seed(0)
+    heading = (2 * math.pi * torch.rand(BATCHES[-1], generator=gen, dtype=torch.float64))[envs_]
+    speed = (0.05 + 0.15 * torch.rand(BATCHES[-1], generator=gen, dtype=torch.float64))[envs_]
+    n_envs = heading.shape[0]
     state = torch.stack((torch.zeros_like(speed), torch.zeros_like(speed), heading.cos(), heading.sin(), speed,
                          torch.zeros_like(speed)), dim=-1)
     obstacles = td["obstacles"].expand(n_envs).clone()
@@ -93,9 +98,12 @@ def main() -> None:
                                           max_generators=30, method="global" if model == "global" else "local",
                                           body_frame=frame)
         for regime, towards_wall, adjuster in (("safe proposals", False, None), ("adjusting", True, "facet_qp")):
-            runs = [median_ms(make_layer(reach, info, adjuster, device), batch_inputs(info, b, towards_wall, device),
-                              calls) for b in BATCHES]
-            row = [t for t, _ in runs]
+            runs = [median_ms(make_layer(reach, info, adjuster, device),
+                              batch_inputs(info, slice(0, b), towards_wall, device), calls) for b in BATCHES]
+            singles = [median_ms(make_layer(reach, info, adjuster, device),
+                                 batch_inputs(info, slice(i, i + 1), towards_wall, device), calls)[0]
+                       for i in range(SINGLES)]
+            row = [statistics.mean(singles)] + [t for t, _ in runs[1:]]
             print(f"{f'{model}: {regime}':<34}" + "".join(f"{t:>12.2f}" for t in row)
                   + f"{row[-1] / row[0]:>9.1f}{row[-1] / BATCHES[-1]:>18.3f}{runs[-1][1]:>10.0%}")
     print("goal: 64 envs in <= 4x the time of one")
