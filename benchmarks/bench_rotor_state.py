@@ -32,7 +32,7 @@ import torch
 
 import envs
 from envs import quadrotor_nav
-from torchrl_brsl.reach import DataDrivenReach, collect_offline_data
+from torchrl_brsl.reach import DataDrivenReach, collect_offline_data, env_trajectories
 from torchrl_brsl.sets import Zonotope
 
 EXTRA = {"base": 0, "tilt": 2, "rates": 4, "command": 3, "both": 5}
@@ -72,8 +72,9 @@ def measure(variant: str, steps: int) -> str:
         data = collect_offline_data(envs.make("quadrotor_nav", empty=True, seed=11, robot="rotor"), steps)
         reach = DataDrivenReach.from_data(data, Zonotope(info.noise_center.double(), info.noise_generators.double()),
                                           translation_invariant_dims=info.position_dims, max_generators=30)
-        starts, plans, visited = _sample(envs.make("quadrotor_nav", empty=True, seed=12, episode_steps=10_000,
-                                                   robot="rotor"), info)
+        env = envs.make("quadrotor_nav", empty=True, seed=12, episode_steps=10_000, robot="rotor")
+        starts, plans, visited = env_trajectories(env, 40, HORIZON, info.action_low, info.action_high,
+                                                  info.braking_action)
     finally:
         quadrotor_nav.ROBOT_TASKS["rotor"] = quadrotor_nav.RotorQuadrotorNav
     initial = Zonotope.from_point(starts)
@@ -87,31 +88,6 @@ def measure(variant: str, steps: int) -> str:
     share = (cells.lipschitz[3:6] * cells.delta[3:6] / cells.errors[3:6])[real].median()
     return (f"{variant:<9}{int(claimed.sum()):>5}/40{outside:>9}{str(covered):>14}"
             f"{float(radius[:3].max()):>10.2f}{float(radius[3:6].max()):>10.2f}{float(share):>8.2f}   {added}")
-
-
-def _sample(env, info) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """40 reachable starts, plans ``[40, T, 3]`` and their true states ``[40, T, n]`` (as the soundness test)."""
-    low, high = info.action_low.double(), info.action_high.double()
-    starts, plans, visited = [], [], []
-    while len(starts) < 40:
-        td = env.reset()
-        for _ in range(int(torch.randint(0, 6, ()))):
-            td["action"] = (low + (high - low) * torch.rand(3, dtype=torch.float64)).float()
-            td = env.step_mdp(env.step(td))
-        plan = low + (high - low) * torch.rand(HORIZON, 3, dtype=torch.float64)
-        if len(starts) % 2:
-            plan[1:] = info.braking_action.double()
-        x0, states = td["state"].double(), []
-        for action in plan:
-            td["action"] = action.float()
-            td = env.step(td)
-            states.append(td["next", "state"].double())
-            td = env.step_mdp(td)
-        if not td["done"]:
-            starts.append(x0)
-            plans.append(plan)
-            visited.append(torch.stack(states))
-    return torch.stack(starts), torch.stack(plans), torch.stack(visited)
 
 
 def main() -> None:

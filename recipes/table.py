@@ -132,7 +132,8 @@ def tables(results: dict) -> str:
         if not tasks:
             continue
         header = "| |" + "|".join(f" {TASK_LABELS.get(t, t)}: {LABELS.get(m, m)} " for t in tasks for m in methods)
-        lines = [f"**{title}** (mean ± std over seeds)", "", header + "|", "|---" * (1 + len(tasks) * len(methods)) + "|"]
+        rule = "|---" * (1 + len(tasks) * len(methods)) + "|"
+        lines = [f"**{title}** (mean ± std over seeds)", "", header + "|", rule]
         for key, label, fmt in ROWS[kind] + EXTRA:
             cells = [cell(results[t]["methods"].get(m), key, fmt) for t in tasks for m in methods]
             lines.append(f"| {label} | " + " | ".join(cells) + " |")

@@ -286,7 +286,8 @@ def test_domain_from_the_data_is_their_box_with_the_invariant_dims_unbounded():
     points = torch.cat((x[keep], u[keep]), dim=1)
     assert slow.bounded_domain and slow.x_minus.shape[0] == int(keep.sum())  # nothing of its own data is dropped
     assert torch.isinf(slow.domain_low[:2]).all() and torch.isinf(slow.domain_high[:2]).all()
-    assert torch.equal(slow.domain_low[2:], points.amin(0)[2:]) and torch.equal(slow.domain_high[2:], points.amax(0)[2:])
+    assert torch.equal(slow.domain_low[2:], points.amin(0)[2:])
+    assert torch.equal(slow.domain_high[2:], points.amax(0)[2:])
     fast = Zonotope.from_point(torch.tensor([0.0, 0.0, 1.5, 0.0], dtype=torch.float64))  # a speed it never saw
     assert not bool(slow.in_domain(fast.unsqueeze(0), u[:1]))
     with pytest.raises(ValueError, match="'data'"):

@@ -113,7 +113,8 @@ def test_table_puts_ablation_runs_after_the_papers_columns_with_the_failsafe_sha
     row = {"goal_rate": 50.0, "collision_rate": 0.0, "mean_speed": 0.1, "max_speed": 0.2, "mean_reward": 5.0,
            "compute_time_mean": 1.0, "compute_time_std": 0.1, "intervention_rate": 0.3, "failsafe_rate": 0.05,
            "unverified_hold_rate": 0.01, "train_collision_steps": 0.0}
-    results = {"diffdrive_nav": {"kind": "goal", "methods": {"brsl": [row], "brsl_ensemble": [dict(row, goal_rate=70.0)]}}}
+    methods = {"brsl": [row], "brsl_ensemble": [dict(row, goal_rate=70.0)]}
+    results = {"diffdrive_nav": {"kind": "goal", "methods": methods}}
     lines = {line.split("|")[1].strip(): [c.strip() for c in line.split("|")[2:-1]]
              for line in tables(results).splitlines() if line.startswith("| ")}
     assert lines[""][5] == "Turtlebot: BRSL (ensemble planner)" and len(lines[""]) == 6

@@ -77,6 +77,58 @@ def sample_reach(reach: DataDrivenReach, step: Callable[[Tensor, Tensor], Tensor
     return SampledReach(torch.stack(outside), torch.stack(ratios), covered, samples)
 
 
+def env_trajectories(env, plans: int, horizon: int, action_low: Tensor, action_high: Tensor, braking_action: Tensor,
+                     warmup: int = 6, state_key="state") -> tuple[Tensor, Tensor, Tensor]:
+    """True trajectories of an env along random plans from reachable states, for checking sets against.
+
+    Each plan starts after ``0 .. warmup - 1`` uniformly random actions from a reset (a state of the
+    operating regime); its actions are uniform in the bounds, every other plan one action then the
+    braking action. A plan whose episode ends on the way (e.g. the robot left the data region) is
+    dropped and another drawn. Random numbers come from the global torch RNG, the env's own from its seed.
+
+    Args:
+        env: an unbatched TorchRL env (typically a task's empty variant, with a long time limit).
+        plans: how many plans to keep.
+        horizon: ``H``, steps per plan.
+        action_low, action_high, braking_action: ``[m]``.
+        state_key: where the state is.
+
+    Returns:
+        ``(x0 [P, n], plans [P, H, m], states [P, H, n])``, float64; ``states[:, j]`` follows action ``j``.
+
+    Examples:
+        >>> x0, plans, states = env_trajectories(envs.make("point_boxes", empty=True, episode_steps=10_000), 40, 11,
+        ...                                      info.action_low, info.action_high, info.braking_action)
+        >>> sets, claimed = reach.reach_covered(Zonotope.from_point(x0), plans)
+        >>> bool(sets.contains(states)[claimed].all())
+    """
+    low, high = action_low.double(), action_high.double()
+
+    def uniform(*shape: int) -> Tensor:
+        return low + (high - low) * torch.rand(*shape, low.shape[-1], dtype=torch.float64)
+
+    starts, chosen, visited = [], [], []
+    while len(starts) < plans:
+        td = env.reset()
+        for _ in range(int(torch.randint(0, warmup, ()))):
+            td["action"] = uniform().float()
+            td = env.step_mdp(env.step(td))
+        plan = uniform(horizon)
+        if len(starts) % 2:
+            plan[1:] = braking_action.double()
+        x0, states = td[state_key].double(), []
+        for action in plan:
+            td["action"] = action.float()
+            td = env.step(td)
+            states.append(td["next", state_key].double())
+            td = env.step_mdp(td)
+        if not td["done"]:
+            starts.append(x0)
+            chosen.append(plan)
+            visited.append(torch.stack(states))
+    return torch.stack(starts), torch.stack(chosen), torch.stack(visited)
+
+
 def points_outside(sets: Zonotope, points: Tensor, directions: int = 64, seed: int = 0) -> Tensor:
     """Whether ``points`` ``[S, ...]`` lie outside ``sets`` (batch ``[...]``): ``[S, ...]`` bool.
 

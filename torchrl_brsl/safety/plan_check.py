@@ -365,7 +365,8 @@ class PlanChecker:
         return self.evaluate_with_gauge(x0, plan, obstacles, detail=False)[0]
 
     def evaluate_with_gauge(self, x0: Tensor, plan: Tensor, obstacles: Obstacles, detail: bool = True,
-                            rollout: tuple[Tensor, Zonotope, Tensor] | None = None) -> tuple[PlanEvaluation, Gauge | None]:
+                            rollout: tuple[Tensor, Zonotope, Tensor] | None = None
+                            ) -> tuple[PlanEvaluation, Gauge | None]:
         """:meth:`evaluate`, with the signed facet products, the facet attaining each value and the
         facet weights (``detail``): what the adjusters linearise (``None`` from the LP). ``rollout``:
         the plan's :meth:`rollout_sets` when already at hand (a local model)."""
