@@ -116,21 +116,22 @@ def cell(rows: list[dict] | None, key: str, fmt: str | None) -> str:
     return _mean_std([r.get(key, np.nan) for r in rows], fmt)
 
 
-def columns(results: dict) -> list[str]:
-    """The paper's methods, then any other run directory (an ablation such as ``brsl_ensemble``)."""
-    found = {m for r in results.values() for m in r["methods"]}
+def columns(results: dict, tasks: list[str]) -> list[str]:
+    """The paper's methods, then any other run directory of these ``tasks`` (an ablation such as ``brsl_ensemble``)."""
+    found = {m for t in tasks for m in results[t]["methods"]}
     return METHODS + sorted(found - set(METHODS))
 
 
 def tables(results: dict) -> str:
     """Table I and Table II in Markdown, the paper's layout (tasks side by side); ablations (runs under
     another method directory, e.g. ``method.name=brsl_ensemble``) follow the paper's columns."""
-    text, methods = [], columns(results)
+    text = []
     for kind, title in (("goal", "Table I: goal-based experiments"), ("path", "Table II: path following")):
         tasks = [t for t in TASKS[kind] if t in results] + sorted(
             t for t, r in results.items() if r["kind"] == kind and t not in TASKS[kind])
         if not tasks:
             continue
+        methods = columns(results, tasks)
         header = "| |" + "|".join(f" {TASK_LABELS.get(t, t)}: {LABELS.get(m, m)} " for t in tasks for m in methods)
         rule = "|---" * (1 + len(tasks) * len(methods)) + "|"
         lines = [f"**{title}** (mean ± std over seeds)", "", header + "|", rule]

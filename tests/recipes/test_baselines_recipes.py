@@ -114,9 +114,12 @@ def test_table_puts_ablation_runs_after_the_papers_columns_with_the_failsafe_sha
            "compute_time_mean": 1.0, "compute_time_std": 0.1, "intervention_rate": 0.3, "failsafe_rate": 0.05,
            "unverified_hold_rate": 0.01, "train_collision_steps": 0.0}
     methods = {"brsl": [row], "brsl_ensemble": [dict(row, goal_rate=70.0)]}
-    results = {"diffdrive_nav": {"kind": "goal", "methods": methods}}
+    results = {"diffdrive_nav": {"kind": "goal", "methods": methods},
+               "point_circle": {"kind": "path", "methods": {"brsl_executed": [row]}}}  # its table only
+    goal, path = tables(results).split("**Table II")
     lines = {line.split("|")[1].strip(): [c.strip() for c in line.split("|")[2:-1]]
-             for line in tables(results).splitlines() if line.startswith("| ")}
+             for line in goal.splitlines() if line.startswith("| ")}
+    assert "BRSL (learns executed)" in path and "executed" not in goal
     assert lines[""][5] == "Turtlebot: BRSL (ensemble planner)" and len(lines[""]) == 6
     assert lines["Goal Rate [%]"] == ["50", "–", "–", "–", "–", "70"]
     assert lines["Failsafe [share of steps]"][0] == "0.05" and lines["Unverified hold [share of steps]"][0] == "0.01"
