@@ -246,3 +246,30 @@ def test_the_leaf_rollout_gives_the_sets_of_rollout_sets_and_the_evaluation_is_u
     given, _ = checker.evaluate_with_gauge(x0, plan, obstacles, rollout=(actions, sets, covered))
     for new, old in zip(given, checker.evaluate(x0, plan, obstacles)):
         torch.testing.assert_close(new, old, rtol=0, atol=0)
+
+
+def test_facet_qp_moves_along_a_constraint_the_reference_already_sits_on(reach):
+    """At rest within the target margin of a wall (no room to approach it: ``A z <= 0`` on its rows), a
+    proposal into and along the wall is projected to the motion along it; the dual's few iterations leave
+    that row slightly violated, and without polishing the pull-back scaled the whole step to zero."""
+    checker = open_loop_checker(reach, stop=0.3)
+    x0 = torch.zeros(1, 4, dtype=D)
+    reference = torch.zeros(1, N_PLAN + N_BRK, 2, dtype=D)
+    generators = torch.tensor([[[[3.0, 0.0], [0.0, 0.1]]]], dtype=D)  # a long wall along x
+
+    def wall(y):
+        return obstacles_of(torch.tensor([[[0.0, y]]], dtype=D), generators, torch.ones(1, 1, dtype=torch.bool))
+
+    low, high = 0.0, 2.0  # place it so that resting there has the value 1.03 (target margin 0.05)
+    for _ in range(50):
+        middle = (low + high) / 2
+        low, high = (middle, high) if checker.evaluate(x0, reference[:, :N_PLAN], wall(middle)).values.min() < 1.03 \
+            else (low, middle)
+    obstacles = wall(high)
+    plan = torch.tensor([[[1.0, 1.0]] * N_PLAN], dtype=D)  # into and along the wall
+    assert not checker.evaluate(x0, plan, obstacles).safe.any()
+    result = FacetQPAdjuster()(checker, x0, plan, obstacles, reference=reference)
+    assert result.evaluation.safe.all() and checker.evaluate(x0, result.plan, obstacles).safe.all()
+    assert result.plan[0, 0, 0] > 0.5 and result.plan[0, 0, 1] <= 0  # along the wall, not into it
+    stuck = FacetQPAdjuster(polish=0)(checker, x0, plan, obstacles, reference=reference)
+    assert torch.equal(stuck.plan, reference[:, :N_PLAN])  # the teeth: the unpolished step is scaled to nothing

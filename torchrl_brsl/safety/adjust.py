@@ -192,12 +192,20 @@ class FacetQPAdjuster:
             (or the reference's own value if smaller).
         backtracking: halvings of the step from the reference towards the projection tried
             when the exact check rejects it.
+        polish: projections of the dual's solution onto its most violated linearised constraint
+            before the pull-back. A fixed number of dual iterations leaves small violations; where
+            the reference already sits on a constraint (hovering at the target margin above a
+            floor: no room, ``A z <= 0``), pulling back to remove them scaled the whole step to
+            zero, motion along the floor included, and the robot stood still.
     """
 
-    def __init__(self, iterations: int = 20, target_margin: float = 0.05, backtracking: int = 4):
+    def __init__(self, iterations: int = 20, target_margin: float = 0.05, backtracking: int = 4, polish: int = 8):
         if iterations < 1:
             raise ValueError(f"`iterations` must be positive, got {iterations}")
+        if polish < 0:
+            raise ValueError(f"`polish` must be non-negative, got {polish}")
         self.iterations = int(iterations)
+        self.polish = int(polish)
         self.target_margin = float(target_margin)
         self.backtracking = int(backtracking)
 
@@ -262,9 +270,12 @@ class FacetQPAdjuster:
         b = torch.cat((bounds, (upper - ref_flat).clamp_min(0), (ref_flat - lower).clamp_min(0)), dim=1)
         target = (torch.clamp(plan, low, high) - reference).flatten(1)
         step = _project_polytope(A, b, target, self.iterations)
-        # keep the linearised constraints exactly: scale back towards the reference
+        step = _polish(A, b, step, self.polish)
+        # keep the linearised constraints: scale back towards the reference (beyond rounding: on a row with no
+        # room, b = 0, a product 1e-18 off would otherwise scale the step to nothing; the exact check decides)
         excess = (A @ step.unsqueeze(-1)).squeeze(-1)
-        scale = torch.where(excess > b, b / excess.clamp_min(1e-12), 1.0).amin(-1).clamp(0, 1)
+        rounding = 1e-9 * (A.abs() @ step.abs().unsqueeze(-1)).squeeze(-1)
+        scale = torch.where(excess > b + rounding, b / excess.clamp_min(1e-12), 1.0).amin(-1).clamp(0, 1)
         step = (step * scale.unsqueeze(-1)).view_as(reference)
         if checker.plan_dependent:  # a check costs a rollout of sets: every halving in one batch
             return _first_safe(checker, x0, reference, step, obstacles, ref_eval, self.backtracking)
@@ -452,6 +463,21 @@ def _project_polytope(A: Tensor, b: Tensor, target: Tensor, iterations: int) -> 
         momentum = torch.lerp(new, lam, (1 - t) / t_next)  # new + (t - 1) / t_next (new - lam)
         lam, t = new, t_next
     return target - (At @ lam).squeeze(-1)
+
+
+def _polish(A: Tensor, b: Tensor, z: Tensor, sweeps: int) -> Tensor:
+    """``sweeps`` projections of each ``z`` ``[B, N]`` onto its most violated halfspace of ``A z <= b``.
+
+    Each moves ``z`` the least distance that satisfies that row (Kaczmarz's method restricted to the
+    violated rows), so a solution nearly feasible keeps its direction along the satisfied ones.
+    """
+    norms = A.square().sum(-1).clamp_min(1e-30)  # [B, C]
+    for _ in range(sweeps):
+        excess = (A @ z.unsqueeze(-1)).squeeze(-1) - b  # [B, C]
+        worst = (excess / norms.sqrt()).argmax(-1, keepdim=True)  # the row farthest outside, per env
+        over = excess.gather(-1, worst).clamp_min(0) / norms.gather(-1, worst)  # [B, 1]
+        z = z - over * A.gather(1, worst.unsqueeze(-1).expand(-1, 1, A.shape[-1])).squeeze(1)
+    return z
 
 
 def _stop_centres(checker: PlanChecker, centers: Tensor) -> Tensor:
