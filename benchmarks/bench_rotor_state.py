@@ -83,9 +83,9 @@ def measure(variant: str, steps: int) -> str:
     covered = [int(reach.reach_covered(initial, plans[:, :h])[1].sum()) for h in (1, 2, 3)]
     radius = sets.generators[:, 0].abs().sum(-1).median(0).values  # [n], after one step
     added = " ".join(f"{float(r):.2f}" for r in radius[6:]) or "-"
-    cells = reach._cells  # the velocity outputs' leaves: how much of their error is the Lipschitz term L δ
-    real = torch.isfinite(cells.errors[3:6]) & (cells.errors[3:6] > 0)
-    share = (cells.lipschitz[3:6] * cells.delta[3:6] / cells.errors[3:6])[real].median()
+    errors = reach.cell_errors[3:6]  # the velocity outputs' leaves: how much of their error is the Lipschitz term L δ
+    real = torch.isfinite(errors) & (errors > 0)
+    share = (reach.cell_lipschitz[3:6] * reach.cell_delta[3:6] / errors)[real].median()
     return (f"{variant:<9}{int(claimed.sum()):>5}/40{outside:>9}{str(covered):>14}"
             f"{float(radius[:3].max()):>10.2f}{float(radius[3:6].max()):>10.2f}{float(share):>8.2f}   {added}")
 

@@ -7,7 +7,7 @@ from scipy.optimize import nnls
 from torchrl_brsl.collision import ZonotopeCollisionChecker
 from torchrl_brsl.reach import DataDrivenReach, DoubleIntegrator, KinematicBicycle
 from torchrl_brsl.safety import FacetQPAdjuster, Failsafe, GradientAdjuster, PlanChecker
-from torchrl_brsl.safety.adjust import _centre_jacobian, _leaf_jacobian, _leaf_rollout, _project_polytope
+from torchrl_brsl.safety.adjust import _centre_jacobian, _leaf_rollout, _project_polytope
 
 from safety_support import assert_closed_form_matches_autograd, obstacles_of
 
@@ -197,6 +197,17 @@ def test_layer_batch_with_some_envs_adjusted_matches_single_env_calls(reach, adj
             torch.testing.assert_close(value[0], batched[3][name][i], rtol=0, atol=1e-9)
 
 
+def bicycle_checker(policy):
+    """A local model of the bicycle in its body frame (500 steps) and its checker, braking open loop or by policy."""
+    bicycle = KinematicBicycle()
+    x, xp, u = bicycle.offline_data(500, torch.Generator().manual_seed(0))
+    reach = DataDrivenReach.fit(x, xp, u, bicycle.noise, translation_invariant_dims=(0, 1), max_generators=24,
+                                body_frame=bicycle.body_frame)
+    return bicycle, PlanChecker(reach, Failsafe(torch.zeros(2, dtype=D), N_BRK, bicycle.braking if policy else None),
+                                N_PLAN + N_BRK, stop_dims=(3,), stop_slack=0.1, action_low=bicycle.action_low,
+                                action_high=bicycle.action_high)
+
+
 @pytest.mark.parametrize("policy", [False, True])
 def test_leaf_jacobian_of_a_local_model_matches_finite_differences(policy):
     """The facet QP linearises a local model along the reference's own sets (one rollout): on the drag-free
@@ -210,30 +221,18 @@ def test_leaf_jacobian_of_a_local_model_matches_finite_differences(policy):
                           action_low=system.action_low, action_high=system.action_high)
     gen = torch.Generator().manual_seed(1)
     x0, plan = system.sample_states(8, gen) * 0.3, system.sample_actions(8, N_PLAN, generator=gen) * 0.5
-    torch.testing.assert_close(_leaf_jacobian(checker, x0, plan), _centre_jacobian(checker, x0, plan),
+    torch.testing.assert_close(_leaf_rollout(checker, x0, plan)[-1], _centre_jacobian(checker, x0, plan),
                                rtol=1e-4, atol=1e-5)
-    bicycle = KinematicBicycle()
-    x, xp, u = bicycle.offline_data(500, torch.Generator().manual_seed(0))
-    reach = DataDrivenReach.fit(x, xp, u, bicycle.noise, translation_invariant_dims=(0, 1), max_generators=24,
-                                body_frame=bicycle.body_frame)
-    checker = PlanChecker(reach, Failsafe(torch.zeros(2, dtype=D), N_BRK, bicycle.braking if policy else None),
-                          N_PLAN + N_BRK, stop_dims=(3,), stop_slack=0.1, action_low=bicycle.action_low,
-                          action_high=bicycle.action_high)
+    bicycle, checker = bicycle_checker(policy)
     x0, plan = bicycle.sample_states(8, gen) * 0.3, bicycle.sample_actions(8, N_PLAN, generator=gen) * 0.5
-    torch.testing.assert_close(_leaf_jacobian(checker, x0, plan)[:, 0], _centre_jacobian(checker, x0, plan)[:, 0],
+    torch.testing.assert_close(_leaf_rollout(checker, x0, plan)[-1][:, 0], _centre_jacobian(checker, x0, plan)[:, 0],
                                rtol=1e-4, atol=1e-5)
 
 
 @pytest.mark.parametrize("policy", [False, True])
 def test_the_leaf_rollout_gives_the_sets_of_rollout_sets_and_the_evaluation_is_unchanged(policy):
     """The facet QP takes the reference's sets from the rollout that linearises it: the same sets, bit for bit."""
-    bicycle = KinematicBicycle()
-    x, xp, u = bicycle.offline_data(500, torch.Generator().manual_seed(0))
-    reach = DataDrivenReach.fit(x, xp, u, bicycle.noise, translation_invariant_dims=(0, 1), max_generators=24,
-                                body_frame=bicycle.body_frame)
-    checker = PlanChecker(reach, Failsafe(torch.zeros(2, dtype=D), N_BRK, bicycle.braking if policy else None),
-                          N_PLAN + N_BRK, stop_dims=(3,), stop_slack=0.1, action_low=bicycle.action_low,
-                          action_high=bicycle.action_high)
+    bicycle, checker = bicycle_checker(policy)
     gen = torch.Generator().manual_seed(1)
     x0, plan = bicycle.sample_states(3, gen) * 0.3, bicycle.sample_actions(3, N_PLAN, generator=gen) * 0.5
     obstacles = obstacles_of(*scene()[2:])

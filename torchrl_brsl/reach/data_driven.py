@@ -119,8 +119,7 @@ class DataDrivenReach(nn.Module):
                 (see the class docstring). ``"data"``: the bounding box of the data's
                 ``(x_minus, u_minus)``, unbounded on the translation-invariant dims and a body
                 frame's heading (a model of low-speed data then claims nothing at speeds it
-                never saw). ``None``: no
-                restriction.
+                never saw). ``None``: no restriction.
             method: ``"local"`` (default): affine models on regression-tree leaves of the data
                 with set-membership error bounds (:mod:`torchrl_brsl.reach.cells`), chosen per
                 step by the set itself; ``"global"``: one affine fit for the whole data region

@@ -78,7 +78,7 @@ def sample_reach(reach: DataDrivenReach, step: Callable[[Tensor, Tensor], Tensor
 
 
 def env_trajectories(env, plans: int, horizon: int, action_low: Tensor, action_high: Tensor, braking_action: Tensor,
-                     warmup: int = 6, state_key="state") -> tuple[Tensor, Tensor, Tensor]:
+                     warmup: int = 6, state_key: str = "state") -> tuple[Tensor, Tensor, Tensor]:
     """True trajectories of an env along random plans from reachable states, for checking sets against.
 
     Each plan starts after ``0 .. warmup - 1`` uniformly random actions from a reset (a state of the

@@ -230,7 +230,7 @@ class FacetQPAdjuster:
         if checker.plan_dependent:  # a local model: one rollout gives the reference's sets and their Jacobian
             *rollout, jacobian = _leaf_rollout(checker, x0, reference)
         ref_eval, gauge = checker.evaluate_with_gauge(x0, reference, obstacles, rollout=rollout)
-        affine = None if checker.plan_dependent else checker.affine_for(x0, reference)
+        affine = checker.affine_for(x0, reference)  # None for a local model
         if affine is None and _feedback_linearisable(checker, x0, reference):  # braking policy: linearised tail
             jacobian = _feedback_jacobian(checker, ref_eval.centers, horizon)  # [B, T, n, N]
             pos_jac = jacobian[:, :, checker.position_dims]  # [B, T, d, N]
@@ -420,11 +420,6 @@ def _leaf_rollout(checker: PlanChecker, x0: Tensor, plan: Tensor) -> tuple[Tenso
     return torch.stack(actions, dim=1), stack_steps(centers, sets), covered, jacobian
 
 
-def _leaf_jacobian(checker: PlanChecker, x0: Tensor, plan: Tensor) -> Tensor:
-    """``d centres / d plan`` ``[B, T, n, P, m]`` of a local model (:func:`_leaf_rollout`)."""
-    return _leaf_rollout(checker, x0, plan)[-1]
-
-
 def _centre_jacobian(checker: PlanChecker, x0: Tensor, plan: Tensor, eps: float = 1e-6) -> Tensor:
     """``d centres / d plan``: ``[B, T, n, P, m]``.
 
@@ -472,9 +467,10 @@ def _polish(A: Tensor, b: Tensor, z: Tensor, sweeps: int) -> Tensor:
     violated rows), so a solution nearly feasible keeps its direction along the satisfied ones.
     """
     norms = A.square().sum(-1).clamp_min(1e-30)  # [B, C]
+    lengths = norms.sqrt()
     for _ in range(sweeps):
         excess = (A @ z.unsqueeze(-1)).squeeze(-1) - b  # [B, C]
-        worst = (excess / norms.sqrt()).argmax(-1, keepdim=True)  # the row farthest outside, per env
+        worst = (excess / lengths).argmax(-1, keepdim=True)  # the row farthest outside, per env
         over = excess.gather(-1, worst).clamp_min(0) / norms.gather(-1, worst)  # [B, 1]
         z = z - over * A.gather(1, worst.unsqueeze(-1).expand(-1, 1, A.shape[-1])).squeeze(1)
     return z

@@ -130,8 +130,8 @@ class PlanChecker:
             stop_slack = DEFAULT_STOP_SLACK
         self.stop_slack = None if stop_slack is None else torch.as_tensor(stop_slack, dtype=dtype).expand(
             len(self.stop_dims))
-        top = self._top_speed()
-        if self.stop_slack is not None and reach.bounded_domain and top is not None:
+        top = self._top_speed() if reach.bounded_domain and self.stop_slack is not None else None
+        if top is not None:
             self.stop_slack = torch.minimum(self.stop_slack, top.to(dtype) / 2)
         if stop_tolerance is None:
             stop_tolerance = self.stop_radius + self.stop_slack
