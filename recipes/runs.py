@@ -3,10 +3,14 @@
 A run directory (``runs/<task>/<method>/seed<k>/``) holds everything a run needs to be
 evaluated or resumed: ``config.yaml`` (the resolved config), ``reach.pt`` (the fitted
 reachability model, BRSL only; ``local_reach.pt`` for a task's low-speed model),
-``checkpoint.pt``, the CSV logs under ``logs/`` and the evaluation outputs.
+``checkpoint.pt``, the CSV logs under ``logs/`` and the evaluation outputs. :func:`archive_run` copies
+the few kilobytes the tables and Fig. 4 read (config, evaluation, training totals, reward curve) into
+another root, e.g. ``docs/runs``, where runs from different machines add up.
 """
 from __future__ import annotations
 
+import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -44,6 +48,53 @@ def runs_of(task_dir: str | Path) -> dict[str, list[Path]]:
     for config in sorted(Path(task_dir).glob("*/seed*/config.yaml")):
         found.setdefault(config.parent.parent.name, []).append(config.parent)
     return found
+
+
+#: the logged scalars an archived run keeps (Fig. 4 reads the episode reward)
+ARCHIVED_SCALARS = ("train/episode_reward",)
+
+
+def finished(run_dir: str | Path) -> bool:
+    """Whether ``run_dir`` is a finished run: trained here (a checkpoint) or archived (an evaluation)."""
+    return (Path(run_dir) / "checkpoint.pt").exists() or (Path(run_dir) / "totals.json").exists()
+
+
+def training_totals(run_dir: str | Path) -> dict:
+    """The training counters of a run (frames, episodes, collisions, interventions, ...): its
+    checkpoint's, or an archived run's ``totals.json``; empty when neither exists."""
+    run_dir = Path(run_dir)
+    if (run_dir / "totals.json").exists():
+        return json.loads((run_dir / "totals.json").read_text())
+    if (run_dir / "checkpoint.pt").exists():
+        return dict(torch.load(run_dir / "checkpoint.pt", map_location="cpu", weights_only=False)["totals"])
+    return {}
+
+
+def archive_run(run_dir: str | Path, dest: str | Path) -> Path:
+    """Copies what the tables and Fig. 4 read from an evaluated run into ``dest``: ``config.yaml``,
+    ``eval.csv`` / ``eval.md``, the training totals as ``totals.json`` and the logged
+    :data:`ARCHIVED_SCALARS` (a few kilobytes in all; no weights, no buffer). Returns ``dest``.
+
+    Example::
+
+        archive_run("runs/table20/point_circle/td3/seed0", "docs/runs/table20/point_circle/td3/seed0")
+    """
+    run_dir, dest = Path(run_dir), Path(dest)
+    missing = [n for n in ("config.yaml", "checkpoint.pt", "eval.csv") if not (run_dir / n).exists()]
+    if missing:
+        raise FileNotFoundError(f"{run_dir} is not an evaluated run: {', '.join(missing)} missing "
+                                f"(train it, then `python -m recipes.evaluate {run_dir}`)")
+    dest.mkdir(parents=True, exist_ok=True)
+    for name in ("config.yaml", "eval.csv", "eval.md"):
+        if (run_dir / name).exists():
+            shutil.copy2(run_dir / name, dest / name)
+    (dest / "totals.json").write_text(json.dumps(training_totals(run_dir), indent=1) + "\n")
+    for name in ARCHIVED_SCALARS:
+        for src in run_dir.glob(f"logs/*/scalars/{name}.csv"):
+            target = dest / src.relative_to(run_dir)
+            target.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(src, target)
+    return dest
 
 
 def read_scalar(run_dir: str | Path, name: str) -> tuple[np.ndarray, np.ndarray]:

@@ -3,6 +3,7 @@
 Usage::
 
     python -m recipes.table runs [--reuse] [--episodes N] [--out docs/tables.md]
+    python -m recipes.table runs/table20 --reuse --archive docs/runs/table20   # keep them, tabulate all kept
 
 Reads ``<root>/<task>/<method>/seed<k>`` for every task and method, evaluates each run (or
 reuses its ``eval.csv`` with ``--reuse``) and prints, as in the paper, Table I (goal tasks:
@@ -13,6 +14,11 @@ seeds (the seed count is a row), compute time the per-step mean ± per-step std 
 seeds; a method without runs on a task shows ``–``. Extra rows: collision steps during training
 (summed over the run, mean ± std over seeds) and interventions. Writes ``fig4.png`` (episode
 reward over training frames, mean and a ±std band over seeds, one panel per task) into the root.
+
+``--archive DEST`` first copies every evaluated run under the root into ``DEST`` (its config,
+evaluation, training totals and reward curve: :func:`recipes.runs.archive_run`), then tabulates
+``DEST``, which holds these runs and any archived before, from other machines too. An archived
+run is read from its ``eval.csv`` (it has no weights to evaluate again).
 """
 from __future__ import annotations
 
@@ -21,9 +27,8 @@ import csv
 from pathlib import Path
 
 import numpy as np
-import torch
 
-from recipes.runs import load_config, runs_of, seed_curves
+from recipes.runs import archive_run, finished, load_config, runs_of, seed_curves, training_totals
 from recipes.tasks import task_kind
 
 #: the paper's column order; its names for the columns
@@ -55,11 +60,8 @@ def _read_eval(run_dir: Path) -> dict:
 
 
 def training_collisions(run_dir: Path) -> float:
-    """Steps in contact during training (the checkpoint's totals)."""
-    path = Path(run_dir) / "checkpoint.pt"
-    if not path.exists():
-        return float("nan")
-    return float(torch.load(path, map_location="cpu", weights_only=False)["totals"]["collisions"])
+    """Steps in contact during training (the run's totals; nan when it has none)."""
+    return float(training_totals(run_dir).get("collisions", float("nan")))
 
 
 def collect(root: str | Path, episodes: int | None = None, reuse: bool = False) -> dict:
@@ -76,15 +78,28 @@ def collect(root: str | Path, episodes: int | None = None, reuse: bool = False) 
         for method, dirs in runs.items():
             rows = []
             for d in dirs:
-                if not (d / "checkpoint.pt").exists():
+                if not finished(d):
                     continue  # a run still starting
-                row = _read_eval(d) if reuse and (d / "eval.csv").exists() else evaluate_run(d, episodes)
+                archived = not (d / "checkpoint.pt").exists()  # only its evaluation is kept
+                row = _read_eval(d) if (reuse or archived) else evaluate_run(d, episodes)
                 row["train_collision_steps"] = training_collisions(d)
                 rows.append(row)
             if rows:
                 methods[method] = rows
         out[task_dir.name] = {"kind": kind, "methods": methods}
     return out
+
+
+def archive_runs(root: str | Path, dest: str | Path) -> int:
+    """Archives every evaluated run ``<root>/<task>/<method>/seed<k>`` into the same place under
+    ``dest`` (replacing an earlier copy); returns how many."""
+    kept = 0
+    for task_dir in (p for p in Path(root).iterdir() if p.is_dir()):
+        for dirs in runs_of(task_dir).values():
+            for d in (d for d in dirs if (d / "eval.csv").exists() and (d / "checkpoint.pt").exists()):
+                archive_run(d, Path(dest) / d.relative_to(root))
+                kept += 1
+    return kept
 
 
 def _format(fmt: str, value: float) -> str:
@@ -181,15 +196,21 @@ def main(argv=None) -> None:
     parser.add_argument("--episodes", type=int, default=None, help="layouts per run (default: task.eval_layouts)")
     parser.add_argument("--reuse", action="store_true", help="reuse each run's eval.csv when present")
     parser.add_argument("--out", default=None, help="also write the tables to this Markdown file")
+    parser.add_argument("--archive", default=None, help="copy the evaluated runs into this root, tabulate it")
     args = parser.parse_args(argv)
-    results = collect(args.root, args.episodes, args.reuse)
+    root = args.root
+    if args.archive:
+        kept = archive_runs(root, args.archive)
+        print(f"archived {kept} evaluated runs of {root} into {args.archive}")
+        root = args.archive
+    results = collect(root, args.episodes, args.reuse)
     if not any(r["methods"] for r in results.values()):
-        raise SystemExit(f"no finished runs under {args.root} (expected <task>/<method>/seed<k>/checkpoint.pt)")
+        raise SystemExit(f"no finished runs under {root} (expected <task>/<method>/seed<k>/checkpoint.pt)")
     text = tables(results)
     print(text)
     if args.out:
         Path(args.out).write_text(text + "\n")
-    figure = plot_fig4(args.root, results)
+    figure = plot_fig4(root, results)
     if figure:
         print(f"\nFig. 4: {figure}")
 

@@ -106,6 +106,15 @@ def test_table_prints_both_tables_in_the_paper_layout(tmp_path, capsys):
     assert "±" in rows(path)["Mean Reward"][4]  # two seeds of td3: mean ± std
     assert (tmp_path / "tables.md").read_text().strip() in out
 
+    # archived: the same tables from a few kilobytes per run, no weights, on any machine
+    archive = tmp_path.parent / f"{tmp_path.name}_archive"
+    table_main([str(tmp_path), "--reuse", "--archive", str(archive), "--out", str(archive / "tables.md")])
+    assert (archive / "tables.md").read_text() == (tmp_path / "tables.md").read_text()
+    assert not list(archive.rglob("*.pt")) and (archive / "fig4.png").exists()
+    kept = [f for f in archive.rglob("*") if f.is_file() and f.suffix != ".png"]
+    assert sum(f.stat().st_size for f in kept) < 4 * 16_000
+    assert "archived 4 evaluated runs" in capsys.readouterr().out
+
 
 def test_table_puts_ablation_runs_after_the_papers_columns_with_the_failsafe_shares():
     from recipes.table import tables
