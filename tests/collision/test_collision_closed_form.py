@@ -21,7 +21,9 @@ from torchrl_brsl.collision import (
     collision_value,
     facet_table,
     intersects,
+    is_full_dimensional,
 )
+from torchrl_brsl.collision.closed_form import _planar_pair_facets
 from torchrl_brsl.collision.lp import SOLVER_ARGS, gauge_layer
 from torchrl_brsl.sets import Zonotope
 
@@ -220,3 +222,43 @@ def test_a_flat_pair_is_widened_on_request_and_only_stricter():
     exact = collision_value(sets, Zonotope(torch.zeros(2, dtype=D), wall[0, 0]), backend="lp")
     assert (values.squeeze(-1) <= exact * (1 + 1e-6)).all()
     assert values[0, 0] > 1 and values[2, 0] <= 1
+
+
+def test_planar_pairs_split_the_support_products_exactly():
+    """The planar checker's tables (set and obstacle products apart, one cross product per pair) give the
+    values of each pair's own table and of HiGHS, parallel and zero columns included."""
+    gen = torch.Generator().manual_seed(60)
+    H, K, B = 6, 5, 4
+    g = 0.3 * torch.randn(H, 1, 2, 9, generator=gen, dtype=torch.float64)
+    g_sets = torch.cat((g, -2 * g[..., :1], torch.zeros(H, 1, 2, 1, dtype=torch.float64)), -1)
+    g_obs = torch.cat((torch.diag_embed(0.1 + torch.rand(1, K, 2, generator=gen, dtype=torch.float64)),
+                       g_sets[:1, :, :, 1:2].expand(1, K, 2, 1)), -1)  # one column parallel to a set's
+    normals, supports, full = _planar_pair_facets(g_sets, g_obs)
+    own = facet_table(torch.cat((g_sets.expand(H, K, 2, 11), g_obs.expand(H, K, 2, 3)), -1))
+    assert full.shape == (H, K) and full.all()
+    torch.testing.assert_close(ZonotopeCollisionChecker(g_sets, g_obs, deduplicate=False).table, own, rtol=1e-13,
+                               atol=1e-13)
+    c_sets = torch.randn(B, H, 1, 2, generator=gen, dtype=torch.float64)
+    c_obs = torch.randn(B, 1, K, 2, generator=gen, dtype=torch.float64)
+    values = ZonotopeCollisionChecker(g_sets, g_obs).value(c_sets, c_obs)
+    sets = Zonotope(c_sets.expand(B, H, K, 2).reshape(-1, 2), g_sets.expand(B, H, K, 2, 11).reshape(-1, 2, 11))
+    obstacles = Zonotope(c_obs.expand(B, H, K, 2).reshape(-1, 2), g_obs.expand(B, H, K, 2, 3).reshape(-1, 2, 3))
+    np.testing.assert_allclose(np64(values).ravel(), highs_values(sets, obstacles), rtol=1e-8)
+
+
+@pytest.mark.parametrize("ratio", [0.0, 1e-12, 1e-9, 1e-8, 3e-8, 6e-8, 1e-7, 1e-6, 1e-4, 1.0])
+def test_planar_full_dimensional_test_never_accepts_what_the_singular_values_reject(ratio):
+    """Near-flat pairs at singular-value ratios around the threshold ``sqrt(eps) ≈ 1.5e-8``: the closed-form
+    determinant test accepts only pairs the SVD test accepts (4x inside it), and accepts clearly full ones."""
+    gen = torch.Generator().manual_seed(61)
+    turn = torch.linalg.qr(torch.randn(32, 2, 2, generator=gen, dtype=torch.float64)).Q
+    scales = torch.tensor([3.0, 3.0 * ratio], dtype=torch.float64)
+    g1 = turn @ torch.diag(scales) @ torch.randn(32, 2, 5, generator=gen, dtype=torch.float64).sign()
+    g2 = turn @ torch.diag(scales) @ torch.tensor([[1.0, 0.5], [0.0, 1.0]], dtype=torch.float64)
+    _, _, full = _planar_pair_facets(g1, g2)
+    svd = is_full_dimensional(torch.cat((g1, g2), -1))
+    assert not (full & ~svd).any()
+    if ratio >= 1e-6:
+        assert full.all()
+    if ratio <= 1e-9:
+        assert not svd.any()

@@ -75,7 +75,11 @@ def facet_table(generators: Tensor, deduplicate: bool = False) -> FacetTable:
         tensor(2.)
     """
     h = facet_normals(generators)  # [..., K, n]
-    sigma = facet_supports(h, generators)  # [..., K]
+    return _table(h, facet_supports(h, generators), deduplicate)
+
+
+def _table(h: Tensor, sigma: Tensor, deduplicate: bool) -> FacetTable:
+    """The :class:`FacetTable` of candidate normals ``h`` ``[..., K, n]`` with supports ``sigma`` ``[..., K]``."""
     norm = h.norm(dim=-1)
     valid = sigma > 0
     one = torch.ones_like(sigma)
@@ -95,6 +99,41 @@ def facet_table(generators: Tensor, deduplicate: bool = False) -> FacetTable:
         normals = torch.where(kept.unsqueeze(-1), normals.gather(-2, rows), 0.0)
         supports = torch.where(kept, supports.gather(-1, order), float("inf"))
     return FacetTable(weights, normals, supports)
+
+
+def _planar_pair_facets(set_generators: Tensor, obstacle_generators: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Candidate normals and supports of ``Z(0, [G1, G2])`` for every pair of a 2-D batch, and
+    whether each pair is surely full-dimensional, from the sets' own products.
+
+    In 2-D the normals are the generators turned by 90°, ``h(g) . g' = g × g'``, so the pair's
+    ``[p, p]`` support product splits into ``G1 × G1`` and ``G2 × G2`` (computed once per set and
+    per obstacle, whatever the other's batch) and one ``[p1, p2]`` product ``G1 × G2`` per pair
+    (its transpose, negated, is ``G2 × G1``): with ``K`` obstacles, ``p1 p1 + K 2 p1 p2`` products
+    instead of ``K (p1 + p2)^2``. The same crosses give ``det(G G^T) = sum_{i<j} (g_i × g_j)^2``
+    (Cauchy–Binet, a sum of squares without cancellation); a pair is reported full-dimensional
+    when ``det > 16 eps tr(G G^T)^2``, which implies ``s_min^2 = det / s_max^2 > 16 eps s_max^2``
+    (``s_max^2 <= tr``): at least 4x inside the test of :func:`is_full_dimensional`, so it never
+    accepts a pair that test rejects (a pair it declines goes through that test).
+
+    Args:
+        set_generators: ``[..., 2, p1]``.
+        obstacle_generators: ``[..., 2, p2]``; batch shapes broadcast.
+
+    Returns:
+        ``(normals [..., p1 + p2, 2], supports [..., p1 + p2], full [...])`` over the broadcast
+        batch, rows in the order of ``facet_normals(cat(G1, G2))``.
+    """
+    g1, g2 = set_generators, obstacle_generators
+    h1, h2 = facet_normals(g1), facet_normals(g2)
+    own1, own2, cross = h1 @ g1, h2 @ g2, h1 @ g2  # [S1, p1, p1], [S2, p2, p2], [..., p1, p2]
+    batch = cross.shape[:-2]
+    p1, p2 = g1.shape[-1], g2.shape[-1]
+    supports = torch.cat((own1.abs().sum(-1) + cross.abs().sum(-1), own2.abs().sum(-1) + cross.abs().sum(-2)), -1)
+    normals = torch.cat((h1.expand(*batch, p1, 2), h2.expand(*batch, p2, 2)), -2)
+    det = (own1.square().sum((-1, -2)) + own2.square().sum((-1, -2))) / 2 + cross.square().sum((-1, -2))
+    trace = g1.square().sum((-1, -2)) + g2.square().sum((-1, -2))  # tr(G G^T) >= lambda_max
+    full = det > 16 * torch.finfo(det.dtype).eps * trace.square()
+    return normals, supports.expand(*batch, p1 + p2), full.expand(batch)
 
 
 def is_full_dimensional(generators: Tensor) -> Tensor:
@@ -197,19 +236,29 @@ class ZonotopeCollisionChecker:
             raise ValueError(
                 f"`obstacle_generators` must be [..., {n}, p2] like `set_generators`, got {tuple(g2.shape)}")
         batch = _broadcast("obstacle_generators", g2.shape[:-2], g1.shape[:-2])
-        generators = torch.cat((g1.expand(*batch, *g1.shape[-2:]), g2.expand(*batch, *g2.shape[-2:])), dim=-1)
-        full = is_full_dimensional(generators)
-        if not bool(full.all()):
-            if not widen:
-                raise ValueError(
-                    "`set_generators` and `obstacle_generators`: Z(0, [G1, G2]) is not full-dimensional for some "
-                    "pair; the closed form does not apply (use collision_value(..., backend='lp'))"
-                )
-            radius = torch.where(full, 0.0, WIDEN_SHARE * generators.norm(dim=(-2, -1)))
-            generators = torch.cat((generators, torch.diag_embed(radius.unsqueeze(-1).expand(*radius.shape, n))), -1)
-        self.table = facet_table(generators, deduplicate=deduplicate)
+        planar = _planar_pair_facets(g1, g2) if n == 2 else None
+        if planar is not None and bool(planar[2].all()):
+            self.table = _table(*planar[:2], deduplicate)
+        else:  # the pairs' own products; the singular values decide, and flat pairs get a box
+            self.table = facet_table(self._widened(g1, g2, batch, widen), deduplicate=deduplicate)
         self.batch_shape = batch
         self.dim = n
+
+    @staticmethod
+    def _widened(g1: Tensor, g2: Tensor, batch: torch.Size, widen: bool) -> Tensor:
+        """``[G1, G2]`` of every pair, with :data:`WIDEN_SHARE` boxes on the flat ones (``widen``) or a ``ValueError``."""
+        generators = torch.cat((g1.expand(*batch, *g1.shape[-2:]), g2.expand(*batch, *g2.shape[-2:])), dim=-1)
+        full = is_full_dimensional(generators)
+        if bool(full.all()):
+            return generators
+        if not widen:
+            raise ValueError(
+                "`set_generators` and `obstacle_generators`: Z(0, [G1, G2]) is not full-dimensional for some "
+                "pair; the closed form does not apply (use collision_value(..., backend='lp'))"
+            )
+        n = generators.shape[-2]
+        radius = torch.where(full, 0.0, WIDEN_SHARE * generators.norm(dim=(-2, -1)))
+        return torch.cat((generators, torch.diag_embed(radius.unsqueeze(-1).expand(*radius.shape, n))), -1)
 
     @property
     def n_facets(self) -> int:
