@@ -23,7 +23,7 @@ from torchrl_brsl.collision import (
     intersects,
     is_full_dimensional,
 )
-from torchrl_brsl.collision.closed_form import _planar_pair_facets
+from torchrl_brsl.collision.closed_form import _PAIR_FACETS, facet_clearances, gauge_values
 from torchrl_brsl.collision.lp import SOLVER_ARGS, gauge_layer
 from torchrl_brsl.sets import Zonotope
 
@@ -224,41 +224,49 @@ def test_a_flat_pair_is_widened_on_request_and_only_stricter():
     assert values[0, 0] > 1 and values[2, 0] <= 1
 
 
-def test_planar_pairs_split_the_support_products_exactly():
-    """The planar checker's tables (set and obstacle products apart, one cross product per pair) give the
-    values of each pair's own table and of HiGHS, parallel and zero columns included."""
-    gen = torch.Generator().manual_seed(60)
-    H, K, B = 6, 5, 4
-    g = 0.3 * torch.randn(H, 1, 2, 9, generator=gen, dtype=torch.float64)
-    g_sets = torch.cat((g, -2 * g[..., :1], torch.zeros(H, 1, 2, 1, dtype=torch.float64)), -1)
-    g_obs = torch.cat((torch.diag_embed(0.1 + torch.rand(1, K, 2, generator=gen, dtype=torch.float64)),
-                       g_sets[:1, :, :, 1:2].expand(1, K, 2, 1)), -1)  # one column parallel to a set's
-    normals, supports, full = _planar_pair_facets(g_sets, g_obs)
-    own = facet_table(torch.cat((g_sets.expand(H, K, 2, 11), g_obs.expand(H, K, 2, 3)), -1))
+@pytest.mark.parametrize("n", [2, 3])
+def test_pair_tables_split_the_support_products_exactly(n):
+    """The checker's tables from the sets' and the obstacles' own products and the per-pair crosses give the
+    values and clearances of each pair's own table and the values of HiGHS, parallel and zero columns included."""
+    gen = torch.Generator().manual_seed(60 + n)
+    H, K, B, p = 6, 5, 4, 9
+    g = 0.3 * torch.randn(H, 1, n, p, generator=gen, dtype=torch.float64)
+    g_sets = torch.cat((g, -2 * g[..., :1], torch.zeros(H, 1, n, 1, dtype=torch.float64)), -1)
+    g_obs = torch.cat((torch.diag_embed(0.1 + torch.rand(1, K, n, generator=gen, dtype=torch.float64)),
+                       g_sets[:1, :, :, 1:2].expand(1, K, n, 1)), -1)  # one column parallel to a set's
+    _, _, full = _PAIR_FACETS[n](g_sets, g_obs)
     assert full.shape == (H, K) and full.all()
-    torch.testing.assert_close(ZonotopeCollisionChecker(g_sets, g_obs, deduplicate=False).table, own, rtol=1e-13,
-                               atol=1e-13)
-    c_sets = torch.randn(B, H, 1, 2, generator=gen, dtype=torch.float64)
-    c_obs = torch.randn(B, 1, K, 2, generator=gen, dtype=torch.float64)
+    split = ZonotopeCollisionChecker(g_sets, g_obs, deduplicate=False)
+    own = facet_table(torch.cat((g_sets.expand(H, K, n, p + 2), g_obs.expand(H, K, n, n + 1)), -1))
+    assert split.n_facets == own.weights.shape[-2]
+    if n == 2:  # the same rows in the same order
+        torch.testing.assert_close(split.table, own, rtol=1e-13, atol=1e-13)
+    c_sets = torch.randn(B, H, 1, n, generator=gen, dtype=torch.float64)
+    c_obs = torch.randn(B, 1, K, n, generator=gen, dtype=torch.float64)
+    offsets = c_obs - c_sets
+    torch.testing.assert_close(split.value(c_sets, c_obs), gauge_values(offsets, own), rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(split.clearance(c_sets, c_obs), facet_clearances(offsets, own), rtol=1e-12,
+                               atol=1e-12)
     values = ZonotopeCollisionChecker(g_sets, g_obs).value(c_sets, c_obs)
-    sets = Zonotope(c_sets.expand(B, H, K, 2).reshape(-1, 2), g_sets.expand(B, H, K, 2, 11).reshape(-1, 2, 11))
-    obstacles = Zonotope(c_obs.expand(B, H, K, 2).reshape(-1, 2), g_obs.expand(B, H, K, 2, 3).reshape(-1, 2, 3))
+    sets = Zonotope(c_sets.expand(B, H, K, n).reshape(-1, n), g_sets.expand(B, H, K, n, p + 2).reshape(-1, n, p + 2))
+    obstacles = Zonotope(c_obs.expand(B, H, K, n).reshape(-1, n), g_obs.expand(B, H, K, n, n + 1).reshape(-1, n, n + 1))
     np.testing.assert_allclose(np64(values).ravel(), highs_values(sets, obstacles), rtol=1e-8)
 
 
+@pytest.mark.parametrize("n", [2, 3])
 @pytest.mark.parametrize("ratio", [0.0, 1e-12, 1e-9, 1e-8, 3e-8, 6e-8, 1e-7, 1e-6, 1e-4, 1.0])
-def test_planar_full_dimensional_test_never_accepts_what_the_singular_values_reject(ratio):
-    """Near-flat pairs at singular-value ratios around the threshold ``sqrt(eps) ≈ 1.5e-8``: the closed-form
-    determinant test accepts only pairs the SVD test accepts (4x inside it), and accepts clearly full ones."""
+def test_pair_full_dimensional_test_never_accepts_what_the_singular_values_reject(n, ratio):
+    """Near-flat pairs at singular-value ratios around the threshold ``sqrt(eps) ≈ 1.5e-8``: the determinant
+    test accepts only pairs the SVD test accepts (4x inside it), and accepts clearly full ones."""
     gen = torch.Generator().manual_seed(61)
-    turn = torch.linalg.qr(torch.randn(32, 2, 2, generator=gen, dtype=torch.float64)).Q
-    scales = torch.tensor([3.0, 3.0 * ratio], dtype=torch.float64)
-    g1 = turn @ torch.diag(scales) @ torch.randn(32, 2, 5, generator=gen, dtype=torch.float64).sign()
-    g2 = turn @ torch.diag(scales) @ torch.tensor([[1.0, 0.5], [0.0, 1.0]], dtype=torch.float64)
-    _, _, full = _planar_pair_facets(g1, g2)
+    turn = torch.linalg.qr(torch.randn(32, n, n, generator=gen, dtype=torch.float64)).Q
+    scales = torch.tensor([3.0] * (n - 1) + [3.0 * ratio], dtype=torch.float64)
+    g1 = turn @ torch.diag(scales) @ torch.randn(32, n, 5, generator=gen, dtype=torch.float64).sign()
+    g2 = turn @ torch.diag(scales) @ (torch.eye(n, dtype=torch.float64) + 0.5 * torch.eye(n, dtype=torch.float64).roll(1, 1))
+    _, _, full = _PAIR_FACETS[n](g1, g2)
     svd = is_full_dimensional(torch.cat((g1, g2), -1))
     assert not (full & ~svd).any()
-    if ratio >= 1e-6:
+    if ratio >= (1e-6 if n == 2 else 1e-4):
         assert full.all()
     if ratio <= 1e-9:
         assert not svd.any()

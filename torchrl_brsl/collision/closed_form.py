@@ -136,6 +136,38 @@ def _planar_pair_facets(set_generators: Tensor, obstacle_generators: Tensor) -> 
     return normals, supports.expand(*batch, p1 + p2), full.expand(batch)
 
 
+def _spatial_pair_facets(set_generators: Tensor, obstacle_generators: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`_planar_pair_facets` in 3-D: the normals ``g_i × g_j`` of two set generators are the
+    set's own (``[p1 (p1 - 1) / 2, 3]``, their supports over ``G1`` computed once per set), those
+    of a set and an obstacle generator and of two obstacle generators are per pair or per
+    obstacle; per pair ``3 p1 p1 p2 / 2 + 2 p1 p2 p2`` products instead of ``(p1 + p2)^3 / 2``.
+    The products give ``3 det(G G^T)`` (every triple three times, Cauchy–Binet); a pair is full
+    when ``det > 16 eps tr^3``: then ``s_min^2 >= det / tr^2 > 16 eps s_max^2``.
+
+    Returns:
+        ``(normals [..., K, 3], supports [..., K], full [...])`` with ``K = (p1 + p2)(p1 + p2 - 1) / 2``
+        (the rows of ``facet_normals(cat(G1, G2))``, in another order).
+    """
+    g1, g2 = set_generators, obstacle_generators
+    h11, h22 = facet_normals(g1), facet_normals(g2)  # [S1, N1, 3], [S2, N2, 3]
+    h12 = torch.linalg.cross(g1.transpose(-1, -2).unsqueeze(-2), g2.transpose(-1, -2).unsqueeze(-3), dim=-1)
+    h12 = h12.flatten(-3, -2)  # [..., p1 p2, 3]
+    products = (h11 @ g1, h11 @ g2, h12 @ g1, h12 @ g2, h22 @ g1, h22 @ g2)
+    batch = h12.shape[:-2]
+    sums = [p.abs().sum(-1) for p in products]
+    supports = torch.cat(((sums[0] + sums[1]).expand(*batch, -1), sums[2] + sums[3], (sums[4] + sums[5]).expand(
+        *batch, -1)), -1)
+    normals = torch.cat((h11.expand(*batch, *h11.shape[-2:]), h12, h22.expand(*batch, *h22.shape[-2:])), -2)
+    det = sum(p.square().sum((-1, -2)) for p in products) / 3
+    trace = g1.square().sum((-1, -2)) + g2.square().sum((-1, -2))
+    full = det > 16 * torch.finfo(det.dtype).eps * trace ** 3
+    return normals, supports, full.expand(batch)
+
+
+#: per dimension, the normals and supports of every (set, obstacle) pair from the sets' own products
+_PAIR_FACETS = {2: _planar_pair_facets, 3: _spatial_pair_facets}
+
+
 def is_full_dimensional(generators: Tensor) -> Tensor:
     """Whether each ``Z(0, generators)`` has a non-empty interior: bool ``[...]``.
 
@@ -236,9 +268,9 @@ class ZonotopeCollisionChecker:
             raise ValueError(
                 f"`obstacle_generators` must be [..., {n}, p2] like `set_generators`, got {tuple(g2.shape)}")
         batch = _broadcast("obstacle_generators", g2.shape[:-2], g1.shape[:-2])
-        planar = _planar_pair_facets(g1, g2) if n == 2 else None
-        if planar is not None and bool(planar[2].all()):
-            self.table = _table(*planar[:2], deduplicate)
+        split = _PAIR_FACETS[n](g1, g2) if n in _PAIR_FACETS else None
+        if split is not None and bool(split[2].all()):
+            self.table = _table(*split[:2], deduplicate)
         else:  # the pairs' own products; the singular values decide, and flat pairs get a box
             self.table = facet_table(self._widened(g1, g2, batch, widen), deduplicate=deduplicate)
         self.batch_shape = batch
