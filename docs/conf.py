@@ -32,7 +32,7 @@ extensions = [
 
 source_suffix = {".rst": "restructuredtext", ".md": "markdown"}
 root_doc = "index"
-exclude_patterns = ["_build", "tutorials/README.rst", "**/GALLERY_HEADER.rst"]
+exclude_patterns = ["_build", "runs", "tutorials/README.rst", "**/GALLERY_HEADER.rst"]  # runs: archived runs
 templates_path = []
 
 # Markdown: anchors for headings down to ###, so pages can link to sections of one another

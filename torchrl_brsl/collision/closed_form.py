@@ -214,7 +214,8 @@ class ZonotopeCollisionChecker:
     """Exact collision values of zonotope pairs with fixed generators, for many centres.
 
     Computes the facet table of ``Z(0, [G1, G2])`` once for every (set, obstacle) pair of
-    the broadcast generator batch; afterwards :meth:`value`, :meth:`clearance` and
+    the broadcast generator batch (in 2-D and 3-D from each set's and each obstacle's own
+    products and the pairs' crosses, :data:`_PAIR_FACETS`); afterwards :meth:`value`, :meth:`clearance` and
     :meth:`check` cost one batched product with the centre offsets, have no Python loop
     over pairs, do not synchronise with the device, and are differentiable w.r.t. both
     centres. The table is detached: for gradients w.r.t. generators use
