@@ -262,7 +262,8 @@ def test_pair_full_dimensional_test_never_accepts_what_the_singular_values_rejec
     turn = torch.linalg.qr(torch.randn(32, n, n, generator=gen, dtype=torch.float64)).Q
     scales = torch.tensor([3.0] * (n - 1) + [3.0 * ratio], dtype=torch.float64)
     g1 = turn @ torch.diag(scales) @ torch.randn(32, n, 5, generator=gen, dtype=torch.float64).sign()
-    g2 = turn @ torch.diag(scales) @ (torch.eye(n, dtype=torch.float64) + 0.5 * torch.eye(n, dtype=torch.float64).roll(1, 1))
+    eye = torch.eye(n, dtype=torch.float64)
+    g2 = turn @ torch.diag(scales) @ (eye + 0.5 * eye.roll(1, 1))
     _, _, full = _PAIR_FACETS[n](g1, g2)
     svd = is_full_dimensional(torch.cat((g1, g2), -1))
     assert not (full & ~svd).any()

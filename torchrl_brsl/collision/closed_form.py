@@ -279,7 +279,7 @@ class ZonotopeCollisionChecker:
 
     @staticmethod
     def _widened(g1: Tensor, g2: Tensor, batch: torch.Size, widen: bool) -> Tensor:
-        """``[G1, G2]`` of every pair, with :data:`WIDEN_SHARE` boxes on the flat ones (``widen``) or a ``ValueError``."""
+        """``[G1, G2]`` of every pair, :data:`WIDEN_SHARE` boxes on the flat ones (``widen``), else a ``ValueError``."""
         generators = torch.cat((g1.expand(*batch, *g1.shape[-2:]), g2.expand(*batch, *g2.shape[-2:])), dim=-1)
         full = is_full_dimensional(generators)
         if bool(full.all()):
