@@ -93,9 +93,27 @@ def horizon(cfg: DictConfig) -> tuple[int, int]:
 def make_layer(cfg: DictConfig, models: SafetyModels) -> BRSLSafetyLayer:
     """The safety layer with the task's :func:`layer_settings`; stopped = final centre within the slack of rest."""
     settings = layer_settings(cfg)
+    if compiles_reach(cfg):
+        for model in models:
+            if model is not None and model.plan_dependent:
+                model.compile_steps()
     adjuster = None if cfg.method.adjuster == "none" else cfg.method.adjuster  # the layer's registry checks the name
     return BRSLSafetyLayer(
         models.reach, Failsafe(settings.braking_action, settings.n_brk, policy=settings.braking_policy),
         settings.n_plan, stop_dims=settings.stop_dims, stop_slack=cfg.method.stop_slack,
         action_low=settings.action_low, action_high=settings.action_high, adjuster=adjuster,
         penalty=cfg.method.penalty, local_reach=models.local)
+
+
+COMPILE_FROM_FRAMES = 5_000
+
+
+def compiles_reach(cfg: DictConfig) -> bool:
+    """``method.compile_reach``: ``true``, ``false`` or ``auto`` (runs of ``COMPILE_FROM_FRAMES`` frames or more,
+    where the minute or two of compilation pays back; :meth:`DataDrivenReach.compile_steps`)."""
+    choice = cfg.method.get("compile_reach", "auto")
+    if choice == "auto":
+        return int(cfg.total_frames) >= COMPILE_FROM_FRAMES
+    if not isinstance(choice, bool):
+        raise ValueError(f"`method.compile_reach` must be true, false or auto, got {choice!r}")
+    return choice

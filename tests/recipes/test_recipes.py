@@ -10,7 +10,7 @@ from recipes.compare import compare
 from recipes.evaluate import evaluate_run, main as evaluate_main
 from recipes.runs import load_run, read_scalar
 import envs
-from recipes.safety_models import horizon, layer_settings
+from recipes.safety_models import COMPILE_FROM_FRAMES, compiles_reach, horizon, layer_settings
 from recipes.setup import compose_config
 from recipes.tasks import make_base_env
 from recipes.train import train
@@ -163,6 +163,16 @@ def test_without_a_planner_the_layer_checks_one_action_and_the_braking_tail():
     assert horizon(compose_config(["task=diffdrive_nav"])) == (1, 6)
     assert horizon(compose_config(["task=diffdrive_nav", "method.planner=ensemble"])) == (8, 6)
     assert horizon(compose_config(["task=point_circle", "method.planner=ensemble"])) == (5, 12)
+
+
+def test_the_reach_steps_are_compiled_for_long_runs_only_by_default():
+    assert compiles_reach(compose_config(["task=diffdrive_nav", f"total_frames={COMPILE_FROM_FRAMES}"]))
+    assert not compiles_reach(compose_config(["task=diffdrive_nav", "total_frames=1000"]))
+    assert not compiles_reach(compose_config(["task=diffdrive_nav", "total_frames=20000",
+                                              "method.compile_reach=false"]))
+    assert compiles_reach(compose_config(["task=diffdrive_nav", "total_frames=100", "method.compile_reach=true"]))
+    with pytest.raises(ValueError, match="method.compile_reach"):
+        compiles_reach(compose_config(["task=diffdrive_nav", "method.compile_reach=sometimes"]))
 
 
 #: the overrides of the task's SafetyInfo that the default task configs document: (n_plan, n_brk)

@@ -10,16 +10,21 @@ frame (:meth:`BodyFrame.rotate`); the noise comes last.
 
 Every quantity that depends only on the fitted model (the directions stacked in state units,
 the leaves' rows, the placements of the rotated pairs) is built once, so a step is a fixed,
-short sequence of batched tensor operations: its cost at batch 1 is the operations' count.
+short sequence of batched tensor operations: its cost at batch 1 is the operations' count
+(about 300 in eager mode, 1-3 ms). Compiled (``compile_kwargs``, :func:`torch.compile`), the
+same operations run as a few fused kernels, 4-8x faster at batch 1 to 5.
 """
 from __future__ import annotations
+
+import types
+import warnings
 
 import torch
 from torch import Tensor
 
 from torchrl_brsl.reach.cells import leaf_bounds, leaf_distance, leaf_layout
 from torchrl_brsl.reach.hinges import product_relaxation, relu_relaxation
-from torchrl_brsl.sets import reduce_girard
+from torchrl_brsl.sets import pad_generators, reduce_girard
 from torchrl_brsl.sets._checks import skip_value_checks
 
 
@@ -31,13 +36,18 @@ class LocalStep:
 
     Args:
         model: a fitted local model.
+        compile_kwargs: arguments of :func:`torch.compile` to run the step compiled (``None``: eager).
+            The first calls compile it (about a minute per graph with an empty cache, seconds with
+            the on-disk cache warm); batch sizes and generator counts after the first change are
+            traced symbolically, so later shapes reuse the graph. If compilation fails (e.g. no C++
+            compiler), a warning says why and the step runs eagerly from then on.
 
     Examples:
         >>> step = LocalStep(reach)
         >>> center, generators, covered = step(x0, torch.zeros(6, 0, dtype=torch.float64), u0)
     """
 
-    def __init__(self, model):
+    def __init__(self, model, compile_kwargs: dict | None = None):
         cells, scale = model._cells, model.input_scale
         like = dict(dtype=scale.dtype, device=scale.device)
         n, n_leaves, _ = cells.slopes.shape
@@ -65,6 +75,16 @@ class LocalStep:
         self._noise(model)
         if self.body_frame is not None:
             self._rotation_tables(model)
+        self._compiled = None if compile_kwargs is None else torch.compile(self._own_step(), **compile_kwargs)
+
+    def _own_step(self):
+        """:meth:`_step` bound to this instance through a copy of its code: the compiler keys its
+        cache (and its limit on recompilations) by code object, so each model gets its own graphs
+        instead of evicting another model's."""
+        step = LocalStep._step
+        code = types.FunctionType(step.__code__.replace(), step.__globals__, step.__name__, step.__defaults__,
+                                  step.__closure__)
+        return types.MethodType(code, self)
 
     def _noise(self, model) -> None:
         """The noise's columns: a box adds its radii to the error's diagonal, else its generators follow."""
@@ -101,6 +121,46 @@ class LocalStep:
             ``max_generators`` when set); ``covered``: the step lies in the data's region. With
             ``tangents``, also the new centre's directions ``[..., n, k]``.
         """
+        if self._compiled is not None and center.numel() > 0:
+            try:
+                return self._run_compiled(center, generators, action, tangents)
+            except Exception as error:  # the compiler's failure must not stop a control loop
+                reason = (str(error).strip().splitlines() or [""])[-1]
+                warnings.warn(f"the compiled reachable-set step failed ({type(error).__name__}: {reason}); "
+                              f"running it eagerly from now on", RuntimeWarning, stacklevel=2)
+                self._compiled = None
+        return self._step(center, generators, action, tangents)
+
+    def _run_compiled(self, center: Tensor, generators: Tensor, action: Tensor,
+                      tangents: tuple[Tensor, Tensor] | None) -> tuple[Tensor, ...]:
+        """The compiled step on shapes that keep one graph per use (inference, tangents, autograd): a flat,
+        contiguous batch of at least 2 (sizes 0 and 1 are specialised by the compiler) marked dynamic,
+        and exactly ``max_generators`` columns (zero padding; a wider input is reduced first), so the
+        reduction takes the same branch at every step."""
+        batch = torch.broadcast_shapes(center.shape[:-1], generators.shape[:-2], action.shape[:-1])
+        size = max(batch.numel(), 2)
+        n, width = self.state_dim, self.max_generators
+
+        def flat(tensor: Tensor, event: int) -> Tensor:
+            tensor = tensor.expand(*batch, *tensor.shape[tensor.ndim - event:]).reshape(-1, *tensor.shape[-event:])
+            tensor = tensor.expand(size, *tensor.shape[1:]).contiguous()
+            torch._dynamo.mark_dynamic(tensor, 0)
+            return tensor
+
+        generators = pad_generators(generators, width) if generators.shape[-1] <= width else reduce_girard(
+            generators, width)
+        inputs = (flat(center, 1), flat(generators, 2), flat(action, 1),
+                  None if tangents is None else tuple(flat(t, 2) for t in tangents))
+        differentiable = torch.is_grad_enabled() and any(
+            t.requires_grad for t in (*inputs[:3], *(inputs[3] or ())))
+        with torch.set_grad_enabled(differentiable):  # one graph for inference, whatever the grad mode
+            out = self._compiled(*inputs)
+        shapes = ((n,), (n, width), (), (n, out[-1].shape[-1]))
+        return tuple(t[:batch.numel()].reshape(*batch, *shape) for t, shape in zip(out, shapes))
+
+    def _step(self, center: Tensor, generators: Tensor, action: Tensor,
+              tangents: tuple[Tensor, Tensor] | None) -> tuple[Tensor, ...]:
+        """The step itself (:meth:`__call__`'s arguments and results), traced as one graph when compiled."""
         cells, n = self.cells, self.state_dim
         z_raw = torch.cat((center.index_select(-1, self.free), action), dim=-1)  # [..., d]
         g_free = generators.index_select(-2, self.free)  # [..., n_F, p] (actions are exact)

@@ -1,0 +1,109 @@
+"""The compiled step of the local model (``DataDrivenReach.compile_steps``): the eager sets, sound, and
+never a crash when the compiler fails. Most tests trace with the ``aot_eager`` backend (the same
+capture, guards and symbolic shapes, no code generation); one runs the default backend."""
+import shutil
+
+import pytest
+import torch
+
+from torchrl_brsl.reach import KinematicBicycle
+from torchrl_brsl.sets import Zonotope
+
+from reach_support import fit, random_plans, sampled
+
+
+@pytest.fixture(scope="module")
+def bicycle():
+    """The bicycle and its body-frame local model (the step with every part: hinges, products, rotation)."""
+    system = KinematicBicycle()
+    model = fit(system, 400, method="local", max_generators=24, body_frame=system.body_frame)
+    yield system, model
+    model.compile_steps(False)
+
+
+def _sets(model, x0, plans):
+    sets, covered = model.reach_covered(Zonotope.from_point(x0), plans)
+    return sets.center, sets.generators.abs().sum(-1), covered
+
+
+def _assert_same(compiled, eager):
+    torch.testing.assert_close(compiled[0], eager[0], rtol=0, atol=1e-12)  # centres
+    torch.testing.assert_close(compiled[1], eager[1], rtol=1e-9, atol=1e-12)  # interval radii
+    assert torch.equal(compiled[2], eager[2])
+
+
+def _step_of(model):
+    return model._cache[("step",)]
+
+
+def test_compiled_steps_give_the_eager_sets_and_the_sampling_has_teeth(bicycle):
+    system, model = bicycle
+    x0, plans, _ = random_plans(system, n_plans=6, horizon=12)
+    batches = (1, 6, 3)  # batch 1 is padded to 2; later sizes reuse the symbolic graph
+    eager = [_sets(model.compile_steps(False), x0[:b], plans[:b]) for b in batches]
+    model.compile_steps(backend="aot_eager")
+    for batch, expected in zip(batches, eager):
+        _assert_same(_sets(model, x0[:batch], plans[:batch]), expected)
+    assert sampled(system, model).violations == 0
+    errors = model.cell_errors.clone()
+    try:  # teeth: the leaves' error intervals scaled by 0.3 (as in the body-frame test) let states out
+        model.cell_errors.mul_(0.3)
+        assert sampled(system, model).violations > 0
+    finally:
+        model.cell_errors.copy_(errors)
+    assert _step_of(model)._compiled is not None  # the compiled path ran throughout: no fallback
+
+
+def test_compiled_tangents_and_gradients_are_the_eager_ones(bicycle):
+    system, model = bicycle
+    x0, plans, _ = random_plans(system, n_plans=4, horizon=6)
+    generators = x0.new_zeros(4, x0.shape[-1], 0)
+    tangents = (torch.randn(4, x0.shape[-1], 3, dtype=x0.dtype), torch.randn(4, 2, 3, dtype=x0.dtype))
+    results = []
+    for kwargs in (None, dict(backend="aot_eager")):
+        model.compile_steps(**kwargs) if kwargs else model.compile_steps(False)
+        moved = model.step_sets(x0, generators, plans[:, 0], tangents)[-1]
+        start, plan = x0.clone().requires_grad_(True), plans.clone().requires_grad_(True)
+        model.reach(Zonotope.from_point(start), plan).center.sum().backward()
+        results.append((moved, start.grad, plan.grad))
+    for compiled, eager in zip(results[1], results[0]):
+        torch.testing.assert_close(compiled, eager, rtol=1e-9, atol=1e-12)
+    assert _step_of(model)._compiled is not None
+
+
+@pytest.mark.skipif(shutil.which("c++") is None and shutil.which("g++") is None,
+                    reason="the default compiler backend needs a C++ compiler")
+def test_the_default_backend_gives_sound_eager_sets(bicycle):
+    system, model = bicycle
+    x0, plans, _ = random_plans(system, n_plans=8, horizon=10)
+    eager = _sets(model.compile_steps(False), x0, plans)
+    _assert_same(_sets(model.compile_steps(), x0, plans), eager)
+    result = sampled(system, model)
+    assert result.violations == 0 and result.checked > 10_000
+    assert _step_of(model)._compiled is not None  # no fallback: the generated code was checked
+
+
+def test_a_failing_compiler_falls_back_to_eager_steps_with_a_warning(bicycle, monkeypatch):
+    def compile_that_fails(function, **kwargs):
+        def call(*args):
+            raise RuntimeError("no C++ compiler on this machine")
+        return call
+
+    system, model = bicycle
+    x0, plans, _ = random_plans(system, n_plans=3, horizon=5)
+    eager = _sets(model.compile_steps(False), x0, plans)
+    monkeypatch.setattr(torch, "compile", compile_that_fails)
+    model.compile_steps()
+    with pytest.warns(RuntimeWarning, match="compiled reachable-set step failed .*no C.. compiler.*eagerly"):
+        _assert_same(_sets(model, x0, plans), eager)
+    assert _step_of(model)._compiled is None
+
+
+def test_compiling_needs_a_fixed_generator_width(bicycle):
+    _, model = bicycle
+    width, model.max_generators = model.max_generators, None
+    try:
+        with pytest.raises(ValueError, match="max_generators"):
+            model.compile_steps()
+    finally:
+        model.max_generators = width
