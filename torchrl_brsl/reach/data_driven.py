@@ -90,7 +90,7 @@ class DataDrivenReach(nn.Module):
         self.body_frame = body_frame
         self.covering_radius = float(covering_radius)
         self.max_generators = max_generators
-        self._compile_kwargs: dict | None = None
+        self._compile: tuple[dict, object] | None = None  # torch.compile's arguments, the step's code copy
         self._cache: dict = {}
 
     # ----------------------------------------------------------------- fitting
@@ -394,7 +394,7 @@ class DataDrivenReach(nn.Module):
             (generators reduced to ``max_generators`` when set), and the mapped tangents if given.
         """
         if ("step",) not in self._cache:
-            self._cache[("step",)] = LocalStep(self, self._compile_kwargs)
+            self._cache[("step",)] = LocalStep(self, *(self._compile or ()))
         return self._cache[("step",)](center, generators, action, tangents)
 
     def compile_steps(self, enabled: bool = True, **compile_kwargs) -> DataDrivenReach:
@@ -416,7 +416,7 @@ class DataDrivenReach(nn.Module):
         if enabled and self.max_generators is None:
             raise ValueError("`compile_steps` needs `max_generators` (a fixed width of the sets' generator "
                              "matrices keeps one compiled graph); fit the model with `max_generators=...`")
-        self._compile_kwargs = dict(compile_kwargs) if enabled else None
+        self._compile = (dict(compile_kwargs), LocalStep.step_function()) if enabled else None
         self._cache.pop(("step",), None)
         return self
 

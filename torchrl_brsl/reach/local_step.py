@@ -41,13 +41,14 @@ class LocalStep:
             the on-disk cache warm); batch sizes and generator counts after the first change are
             traced symbolically, so later shapes reuse the graph. If compilation fails (e.g. no C++
             compiler), a warning says why and the step runs eagerly from then on.
+        step_function: the model's copy of the step to compile (:meth:`step_function`; a new one if ``None``).
 
     Examples:
         >>> step = LocalStep(reach)
         >>> center, generators, covered = step(x0, torch.zeros(6, 0, dtype=torch.float64), u0)
     """
 
-    def __init__(self, model, compile_kwargs: dict | None = None):
+    def __init__(self, model, compile_kwargs: dict | None = None, step_function=None):
         cells, scale = model._cells, model.input_scale
         like = dict(dtype=scale.dtype, device=scale.device)
         n, n_leaves, _ = cells.slopes.shape
@@ -75,16 +76,19 @@ class LocalStep:
         self._noise(model)
         if self.body_frame is not None:
             self._rotation_tables(model)
-        self._compiled = None if compile_kwargs is None else torch.compile(self._own_step(), **compile_kwargs)
+        self._compiled = None
+        if compile_kwargs is not None:
+            function = step_function or LocalStep.step_function()
+            self._compiled = torch.compile(types.MethodType(function, self), **compile_kwargs)
 
-    def _own_step(self):
-        """:meth:`_step` bound to this instance through a copy of its code: the compiler keys its
-        cache (and its limit on recompilations) by code object, so each model gets its own graphs
-        instead of evicting another model's."""
+    @staticmethod
+    def step_function():
+        """A copy of :meth:`_step` with a code object of its own, for a model to compile: the compiler
+        keys its graphs (and its limit on recompilations) by code object, so one copy per model keeps
+        that model's graphs when its step is rebuilt (after ``.to()``) and never evicts another model's."""
         step = LocalStep._step
-        code = types.FunctionType(step.__code__.replace(), step.__globals__, step.__name__, step.__defaults__,
+        return types.FunctionType(step.__code__.replace(), step.__globals__, step.__name__, step.__defaults__,
                                   step.__closure__)
-        return types.MethodType(code, self)
 
     def _noise(self, model) -> None:
         """The noise's columns: a box adds its radii to the error's diagonal, else its generators follow."""
