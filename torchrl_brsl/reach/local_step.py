@@ -24,7 +24,7 @@ from torch import Tensor
 
 from torchrl_brsl.reach.cells import leaf_bounds, leaf_distance, leaf_layout
 from torchrl_brsl.reach.hinges import product_relaxation, relu_relaxation
-from torchrl_brsl.sets import pad_generators, reduce_girard
+from torchrl_brsl.sets import reduce_girard
 from torchrl_brsl.sets._checks import skip_value_checks
 
 
@@ -141,26 +141,33 @@ class LocalStep:
         contiguous batch of at least 2 (sizes 0 and 1 are specialised by the compiler) marked dynamic,
         and exactly ``max_generators`` columns (zero padding; a wider input is reduced first), so the
         reduction takes the same branch at every step."""
-        batch = torch.broadcast_shapes(center.shape[:-1], generators.shape[:-2], action.shape[:-1])
-        size = max(batch.numel(), 2)
+        batch = center.shape[:-1]
+        if generators.shape[:-2] != batch or action.shape[:-1] != batch:
+            batch = torch.broadcast_shapes(batch, generators.shape[:-2], action.shape[:-1])
+        count = batch.numel()
         n, width = self.state_dim, self.max_generators
 
         def flat(tensor: Tensor, event: int) -> Tensor:
-            tensor = tensor.expand(*batch, *tensor.shape[tensor.ndim - event:]).reshape(-1, *tensor.shape[-event:])
-            tensor = tensor.expand(size, *tensor.shape[1:]).contiguous()
+            if tensor.ndim != event + 1 or tensor.shape[0] != count or count < 2 or not tensor.is_contiguous():
+                tensor = tensor.expand(*batch, *tensor.shape[tensor.ndim - event:]).reshape(-1, *tensor.shape[-event:])
+                tensor = tensor.expand(max(count, 2), *tensor.shape[1:]).contiguous()
             torch._dynamo.mark_dynamic(tensor, 0)
             return tensor
 
-        generators = pad_generators(generators, width) if generators.shape[-1] <= width else reduce_girard(
-            generators, width)
+        if generators.shape[-1] < width:  # finite by construction: no value checks
+            generators = torch.nn.functional.pad(generators, (0, width - generators.shape[-1]))
+        elif generators.shape[-1] > width:
+            generators = reduce_girard(generators, width)
         inputs = (flat(center, 1), flat(generators, 2), flat(action, 1),
                   None if tangents is None else tuple(flat(t, 2) for t in tangents))
         differentiable = torch.is_grad_enabled() and any(
             t.requires_grad for t in (*inputs[:3], *(inputs[3] or ())))
         with torch.set_grad_enabled(differentiable):  # one graph for inference, whatever the grad mode
             out = self._compiled(*inputs)
+        if count == len(out[0]) and len(batch) == 1:
+            return out
         shapes = ((n,), (n, width), (), (n, out[-1].shape[-1]))
-        return tuple(t[:batch.numel()].reshape(*batch, *shape) for t, shape in zip(out, shapes))
+        return tuple(t[:count].reshape(*batch, *shape) for t, shape in zip(out, shapes))
 
     def _step(self, center: Tensor, generators: Tensor, action: Tensor,
               tangents: tuple[Tensor, Tensor] | None) -> tuple[Tensor, ...]:
