@@ -2,17 +2,19 @@
 
 Per setting: collisions (MuJoCo contacts) per episode, mean speed against the same policy
 without the layer, the shares of steps with intervention, failsafe, ``unverified_hold`` and
-``out_of_data``, and the median position radius of the final reachable set of the executed
-plans. One-action proposals (``n_plan = 1``) then the task's braking steps (``--n-brk`` for
+``out_of_data``, the median position radius of the final reachable set of the executed
+plans, and the layer's median time per batched call (after ``N_WARMUP`` calls, which include
+any compilation: ``--compile`` runs the local models' steps compiled). One-action proposals (``n_plan = 1``) then the task's braking steps (``--n-brk`` for
 the uncapped servos), stop slack 0.15, the facet-QP adjuster, ``--steps`` offline transitions.
 
 Usage: ``python benchmarks/bench_closed_loop.py [--task point_boxes] [--robot kinematic] [--steps 1000]
-[--episodes 40] [--servo capped|uncapped|both] [--models global,local,body]``
+[--episodes 40] [--servo capped|uncapped|both] [--models global,local,body] [--compile]``
 """
 from __future__ import annotations
 
 import argparse
 import functools
+import statistics
 
 import torch
 from torchrl.envs import SerialEnv, TransformedEnv
@@ -23,6 +25,7 @@ from torchrl_brsl.safety import BRSLSafetyLayer, Failsafe
 from torchrl_brsl.sets import Zonotope
 
 N_ENVS = 10
+N_WARMUP = 20
 UNCAPPED = {"diffdrive_nav": {"max_acceleration": None, "max_turn_acceleration": None}}
 
 
@@ -39,6 +42,7 @@ def run(task: str, options: dict, reach: DataDrivenReach | None, n_brk: int, epi
     torch.manual_seed(0)
     td = env.reset()
     collided, current, speeds, flags, radii, done_episodes = [], torch.zeros(N_ENVS, dtype=torch.bool), [], [], [], 0
+    times = []
     while done_episodes < episodes:
         low, high = info.action_low, info.action_high
         td["action"] = low + (high - low) * torch.rand(N_ENVS, low.shape[-1])
@@ -53,6 +57,7 @@ def run(task: str, options: dict, reach: DataDrivenReach | None, n_brk: int, epi
         if reach is not None:
             flags.append(torch.stack([td["next", "brsl", key].squeeze(-1).float()
                                       for key in ("intervened", "failsafe", "unverified_hold", "out_of_data")], -1))
+            times.append(float(td["next", "brsl", "compute_time"].flatten()[0]))
         done = td["next", "done"].squeeze(-1)
         collided += current[done].tolist()
         done_episodes += int(done.sum())
@@ -64,7 +69,8 @@ def run(task: str, options: dict, reach: DataDrivenReach | None, n_brk: int, epi
     shares = torch.cat(flags).mean(0).tolist() if flags else [float("nan")] * 4
     return {"collisions": sum(collided), "episodes": len(collided), "speed": torch.cat(speeds).mean().item(),
             "intervened": shares[0], "failsafe": shares[1], "hold": shares[2], "out_of_data": shares[3],
-            "radius": torch.cat(radii).median().item() if radii else float("nan")}
+            "radius": torch.cat(radii).median().item() if radii else float("nan"),
+            "ms": 1e3 * statistics.median(times[N_WARMUP:]) if len(times) > N_WARMUP else float("nan")}
 
 
 def _final_sets(layer: BRSLSafetyLayer, state, plan):
@@ -87,13 +93,14 @@ def main() -> None:
     parser.add_argument("--servo", choices=("capped", "uncapped", "both"), default="both")
     parser.add_argument("--models", default="global,local,body",
                         help="comma-separated: global, local, body (local in the body frame, robots with a heading)")
+    parser.add_argument("--compile", action="store_true", help="compiled steps of the local models (compile_steps)")
     args = parser.parse_args()
     torch.set_num_threads(1)
     task = args.task
     info = envs.safety_info(task, robot=args.robot)
     noise = Zonotope(info.noise_center.double(), info.noise_generators.double())
     print(f"{'servo':<10}{'model':<8}{'collisions':>12}{'speed':>8}{'vs none':>9}{'interv.':>9}{'failsafe':>9}"
-          f"{'hold':>7}{'no data':>9}{'radius':>8}")
+          f"{'hold':>7}{'no data':>9}{'radius':>8}{'ms/step':>9}")
     uncapped = UNCAPPED.get(task, {"max_acceleration": None})
     robot = {} if args.robot == "kinematic" else {"robot": args.robot}
     settings = (("capped", robot, info.n_brk), ("uncapped", {**uncapped, **robot}, args.n_brk or info.n_brk))
@@ -109,10 +116,12 @@ def main() -> None:
             reach = DataDrivenReach.from_data(data, noise, translation_invariant_dims=info.position_dims,
                                               max_generators=30, method="global" if method == "global" else "local",
                                               body_frame=frame)
+            if args.compile and reach.plan_dependent:
+                reach.compile_steps()
             row = run(task, options, reach, n_brk, args.episodes, args.episode_steps)
             print(f"{servo:<10}{method:<8}{row['collisions']:>6}/{row['episodes']:<5}{row['speed']:>8.3f}"
                   f"{row['speed'] / free['speed']:>9.2f}{row['intervened']:>9.2f}{row['failsafe']:>9.2f}"
-                  f"{row['hold']:>7.2f}{row['out_of_data']:>9.2f}{row['radius']:>8.3f}", flush=True)
+                  f"{row['hold']:>7.2f}{row['out_of_data']:>9.2f}{row['radius']:>8.3f}{row['ms']:>9.1f}", flush=True)
 
 
 if __name__ == "__main__":
