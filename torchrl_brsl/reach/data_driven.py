@@ -397,27 +397,41 @@ class DataDrivenReach(nn.Module):
             self._cache[("step",)] = LocalStep(self, *(self._compile or ()))
         return self._cache[("step",)](center, generators, action, tangents)
 
-    def compile_steps(self, enabled: bool = True, **compile_kwargs) -> DataDrivenReach:
+    def compile_steps(self, enabled: bool = True, warm_up: bool = True, **compile_kwargs) -> DataDrivenReach:
         """Run the local model's steps (:meth:`step_sets`) through :func:`torch.compile`; returns ``self``.
 
-        The same operations, fused: 4-8x less time per step at batch 1 to 5 on a CPU, about 3x at
-        64 (``benchmarks/bench_layer.py``), and the same sets up to rounding. The first steps pay
-        the compilation: about a minute per graph with an empty cache (usually two graphs: batch
-        1, then symbolic shapes), seconds once the on-disk cache holds them. Worth it for training
-        and long evaluations; the global model has no steps to compile.
+        The same operations, fused: 2-5x less time per step at batch 1 to 16 on a CPU, less at 64
+        (``benchmarks/bench_compiled_step.py``), and the same sets up to rounding. Compiling a
+        graph takes about a minute with an empty cache, seconds once the on-disk cache holds it.
+        ``warm_up`` compiles the checking and the adjusters' linearisation graphs here, on two
+        offline states, so that no control step stalls on it (the graphs of gradients through the
+        steps, for the gradient adjuster, compile on first use). The global model has no steps to
+        compile: it only records the choice.
 
         Args:
             enabled: ``False`` returns to eager steps.
-            **compile_kwargs: passed to :func:`torch.compile` (e.g. ``mode="max-autotune-no-cudagraphs"``).
+            warm_up: compile now rather than at the first steps.
+            **compile_kwargs: passed to :func:`torch.compile` (e.g. ``backend="aot_eager"``).
+
+        Raises:
+            ValueError: without ``max_generators`` (the compiled step keeps the generator matrix at that width).
 
         Examples:
-            >>> reach = DataDrivenReach.fit(x, xp, u, noise, translation_invariant_dims=(0, 1)).compile_steps()
+            >>> reach = DataDrivenReach.fit(x, xp, u, noise, translation_invariant_dims=(0, 1), max_generators=30)
+            >>> reach = reach.compile_steps()
         """
         if enabled and self.max_generators is None:
             raise ValueError("`compile_steps` needs `max_generators` (a fixed width of the sets' generator "
                              "matrices keeps one compiled graph); fit the model with `max_generators=...`")
         self._compile = (dict(compile_kwargs), LocalStep.step_function()) if enabled else None
         self._cache.pop(("step",), None)
+        if enabled and warm_up and self.plan_dependent:
+            center, action = self.x_minus[:2], self.u_minus[:2]
+            generators = center.new_zeros(*center.shape, self.max_generators)
+            tangents = (center.new_zeros(*center.shape, 2), action.new_zeros(*action.shape, 2))
+            with torch.no_grad():
+                self.step_sets(center, generators, action)
+                self.step_sets(center, generators, action, tangents)
         return self
 
     @property

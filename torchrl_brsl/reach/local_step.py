@@ -160,6 +160,9 @@ class LocalStep:
             generators = reduce_girard(generators, width)
         inputs = (flat(center, 1), flat(generators, 2), flat(action, 1),
                   None if tangents is None else tuple(flat(t, 2) for t in tangents))
+        if tangents is not None and inputs[3][0].shape[-1] >= 2:  # one graph for every plan length
+            for tangent in inputs[3]:
+                torch._dynamo.mark_dynamic(tangent, tangent.ndim - 1)
         differentiable = torch.is_grad_enabled() and any(
             t.requires_grad for t in (*inputs[:3], *(inputs[3] or ())))
         with torch.set_grad_enabled(differentiable):  # one graph for inference, whatever the grad mode
