@@ -6,7 +6,8 @@ Usage::
     python -m recipes.table runs/table20 --reuse --archive docs/runs/table20   # keep them, tabulate all kept
 
 Reads ``<root>/<task>/<method>/seed<k>`` for every task and method, evaluates each run (or
-reuses its ``eval.csv`` with ``--reuse``) and prints, as in the paper, Table I (goal tasks:
+reuses its ``eval.csv`` with ``--reuse``, leaving out with a warning the runs that have none
+yet) and prints, as in the paper, Table I (goal tasks:
 Turtlebot = ``diffdrive_nav``, quadrotor = ``quadrotor_nav``) and Table II (path tasks: point =
 ``point_circle``, ``hexarotor_wind``; other path tasks follow), tasks side by side and the
 methods BRSL, RTS, SAILR, SECAS, Baseline (TD3) as columns. Every cell is the mean ± std over
@@ -24,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -81,6 +83,9 @@ def collect(root: str | Path, episodes: int | None = None, reuse: bool = False) 
                 if not finished(d):
                     continue  # a run still starting
                 archived = not (d / "checkpoint.pt").exists()  # only its evaluation is kept
+                if reuse and not (d / "eval.csv").exists():
+                    warnings.warn(f"{d}: no evaluation to reuse (still training?); left out of the tables")
+                    continue
                 row = _read_eval(d) if (reuse or archived) else evaluate_run(d, episodes)
                 row["train_collision_steps"] = training_collisions(d)
                 rows.append(row)

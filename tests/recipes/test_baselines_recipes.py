@@ -114,6 +114,10 @@ def test_table_prints_both_tables_in_the_paper_layout(tmp_path, capsys):
     kept = [f for f in archive.rglob("*") if f.is_file() and f.suffix != ".png"]
     assert sum(f.stat().st_size for f in kept) < 4 * 16_000
     assert "archived 4 evaluated runs" in capsys.readouterr().out
+    (tmp_path / "point_boxes" / "td3" / "seed1" / "eval.csv").unlink()  # as while it still trains
+    with pytest.warns(UserWarning, match="seed1: no evaluation to reuse"):
+        table_main([str(tmp_path), "--reuse", "--out", str(tmp_path / "partial.md")])
+    assert "±" not in (tmp_path / "partial.md").read_text().split("**Table II")[1].split("Mean Reward")[1].split("\n")[0]
 
 
 def test_table_puts_ablation_runs_after_the_papers_columns_with_the_failsafe_shares():
