@@ -5,6 +5,7 @@ import shutil
 
 import pytest
 import torch
+from torch._dynamo.utils import counters
 
 from torchrl_brsl.reach import KinematicBicycle
 from torchrl_brsl.sets import Zonotope
@@ -41,9 +42,14 @@ def test_compiled_steps_give_the_eager_sets_and_the_sampling_has_teeth(bicycle):
     x0, plans, _ = random_plans(system, n_plans=6, horizon=12)
     batches = (1, 6, 3)  # batch 1 is padded to 2; later sizes reuse the symbolic graph
     eager = [_sets(model.compile_steps(False), x0[:b], plans[:b]) for b in batches]
-    model.compile_steps(backend="aot_eager")
+    model.compile_steps(backend="aot_eager")  # compiles the checking and linearisation graphs (warm-up)
+    step, compiled_frames = _step_of(model), counters["frames"]["ok"]
     for batch, expected in zip(batches, eager):
         _assert_same(_sets(model, x0[:batch], plans[:batch]), expected)
+    generators = x0.new_zeros(6, x0.shape[-1], 24)
+    model.step_sets(x0, generators, plans[:, 0], (generators[..., :5], plans[:, 0].unsqueeze(-1).expand(6, 2, 5)))
+    assert counters["frames"]["ok"] == compiled_frames  # no step compiled after the warm-up
+    assert model.compile_steps(backend="aot_eager") is model and _step_of(model) is step  # kept
     assert sampled(system, model).violations == 0
     errors = model.cell_errors.clone()
     try:  # teeth: the leaves' error intervals scaled by 0.3 (as in the body-frame test) let states out

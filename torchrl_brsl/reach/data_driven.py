@@ -90,7 +90,7 @@ class DataDrivenReach(nn.Module):
         self.body_frame = body_frame
         self.covering_radius = float(covering_radius)
         self.max_generators = max_generators
-        self._compile: tuple[dict, object] | None = None  # torch.compile's arguments, the step's code copy
+        self._compile: tuple[dict, tuple] | None = None  # torch.compile's arguments, the step's code copies
         self._cache: dict = {}
 
     # ----------------------------------------------------------------- fitting
@@ -408,6 +408,8 @@ class DataDrivenReach(nn.Module):
         steps, for the gradient adjuster, compile on first use). The global model has no steps to
         compile: it only records the choice.
 
+        Calling it again with the same arguments keeps the compiled graphs.
+
         Args:
             enabled: ``False`` returns to eager steps.
             warm_up: compile now rather than at the first steps.
@@ -423,7 +425,10 @@ class DataDrivenReach(nn.Module):
         if enabled and self.max_generators is None:
             raise ValueError("`compile_steps` needs `max_generators` (a fixed width of the sets' generator "
                              "matrices keeps one compiled graph); fit the model with `max_generators=...`")
-        self._compile = (dict(compile_kwargs), LocalStep.step_function()) if enabled else None
+        if enabled and self._compile is not None and self._compile[0] == compile_kwargs:
+            return self  # already compiled so: keep the graphs
+        functions = (LocalStep.step_function(), LocalStep.step_function())
+        self._compile = (dict(compile_kwargs), functions) if enabled else None
         self._cache.pop(("step",), None)
         if enabled and warm_up and self.plan_dependent:
             center, action = self.x_minus[:2], self.u_minus[:2]

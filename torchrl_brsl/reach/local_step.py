@@ -41,14 +41,15 @@ class LocalStep:
             the on-disk cache warm); batch sizes and generator counts after the first change are
             traced symbolically, so later shapes reuse the graph. If compilation fails (e.g. no C++
             compiler), a warning says why and the step runs eagerly from then on.
-        step_function: the model's copy of the step to compile (:meth:`step_function`; a new one if ``None``).
+        step_functions: the model's copies of the step to compile, for steps without and with
+            tangents (:meth:`step_function`; new ones if ``None``).
 
     Examples:
         >>> step = LocalStep(reach)
         >>> center, generators, covered = step(x0, torch.zeros(6, 0, dtype=torch.float64), u0)
     """
 
-    def __init__(self, model, compile_kwargs: dict | None = None, step_function=None):
+    def __init__(self, model, compile_kwargs: dict | None = None, step_functions: tuple | None = None):
         cells, scale = model._cells, model.input_scale
         like = dict(dtype=scale.dtype, device=scale.device)
         n, n_leaves, _ = cells.slopes.shape
@@ -76,16 +77,17 @@ class LocalStep:
         self._noise(model)
         if self.body_frame is not None:
             self._rotation_tables(model)
-        self._compiled = None
+        self._compiled = None  # per use: without tangents (checking, gradients), with them (linearisation)
         if compile_kwargs is not None:
-            function = step_function or LocalStep.step_function()
-            self._compiled = torch.compile(types.MethodType(function, self), **compile_kwargs)
+            functions = step_functions or (LocalStep.step_function(), LocalStep.step_function())
+            self._compiled = tuple(torch.compile(types.MethodType(f, self), **compile_kwargs) for f in functions)
 
     @staticmethod
     def step_function():
         """A copy of :meth:`_step` with a code object of its own, for a model to compile: the compiler
-        keys its graphs (and its limit on recompilations) by code object, so one copy per model keeps
-        that model's graphs when its step is rebuilt (after ``.to()``) and never evicts another model's."""
+        keys its graphs (and its limit on recompilations) by code object, so copies per model and use
+        keep that model's graphs when its step is rebuilt (after ``.to()``), never evict another
+        model's, and keep the guards of steps with and without tangents apart."""
         step = LocalStep._step
         return types.FunctionType(step.__code__.replace(), step.__globals__, step.__name__, step.__defaults__,
                                   step.__closure__)
@@ -166,7 +168,7 @@ class LocalStep:
         differentiable = torch.is_grad_enabled() and any(
             t.requires_grad for t in (*inputs[:3], *(inputs[3] or ())))
         with torch.set_grad_enabled(differentiable):  # one graph for inference, whatever the grad mode
-            out = self._compiled(*inputs)
+            out = self._compiled[tangents is not None](*inputs)
         if count == len(out[0]) and len(batch) == 1:
             return out
         shapes = ((n,), (n, width), (), (n, out[-1].shape[-1]))
