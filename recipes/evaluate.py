@@ -24,7 +24,6 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from recipes.environments import make_env
 from recipes.runs import load_config, load_run, runs_of, seed_curves
-from recipes.setup import threads
 from recipes.tasks import task_kind
 
 #: the rows of the paper's tables: (key, label) per task kind
@@ -194,7 +193,6 @@ def evaluate_run(run_dir: str | Path, episodes: int | None = None, video: bool =
     """Evaluates one run, writes ``eval.csv``/``eval.md`` into it and returns its metrics."""
     run_dir = Path(run_dir)
     cfg, actor, models = load_run(run_dir)
-    threads(cfg.threads)
     result = run_episodes(cfg, actor, models, episodes, video_path=run_dir / "episode.gif" if video else None)
     write_results([result], run_dir, "eval", task_kind(cfg.task))
     return result

@@ -21,12 +21,14 @@ from recipes import baselines
 from recipes.environments import make_env
 from recipes.networks import make_actor
 from recipes.safety_models import SafetyModels
+from recipes.setup import threads
 
 
 def load_run(run_dir: str | Path):
     """``(cfg, actor, models)`` of a trained run (``models`` is None for methods without a layer)."""
     run_dir = Path(run_dir)
     cfg = OmegaConf.load(run_dir / "config.yaml")
+    threads(cfg.threads)  # before the layer: its compiled steps are specialised to the thread count
     models = SafetyModels.load(run_dir) if cfg.method.layer else baselines.load(run_dir) \
         if baselines.name(cfg) else None
     env = make_env(cfg, seed=0, models=models)
