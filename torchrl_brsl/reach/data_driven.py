@@ -427,7 +427,7 @@ class DataDrivenReach(nn.Module):
                              "matrices keeps one compiled graph); fit the model with `max_generators=...`")
         if enabled and self._compile is not None and self._compile[0] == compile_kwargs:
             return self  # already compiled so: keep the graphs
-        functions = (LocalStep.step_function(), LocalStep.step_function())
+        functions = (LocalStep.step_function(), LocalStep.step_function()) if enabled else None
         self._compile = (dict(compile_kwargs), functions) if enabled else None
         self._cache.pop(("step",), None)
         if enabled and warm_up and self.plan_dependent:

@@ -12,7 +12,7 @@ Every quantity that depends only on the fitted model (the directions stacked in 
 the leaves' rows, the placements of the rotated pairs) is built once, so a step is a fixed,
 short sequence of batched tensor operations: its cost at batch 1 is the operations' count
 (about 300 in eager mode, 1-3 ms). Compiled (``compile_kwargs``, :func:`torch.compile`), the
-same operations run as a few fused kernels, 4-8x faster at batch 1 to 5.
+same operations run as about 50 fused kernels, 2-4x faster at batch 1 to 16.
 """
 from __future__ import annotations
 
@@ -38,9 +38,9 @@ class LocalStep:
         model: a fitted local model.
         compile_kwargs: arguments of :func:`torch.compile` to run the step compiled (``None``: eager).
             The first calls compile it (about a minute per graph with an empty cache, seconds with
-            the on-disk cache warm); batch sizes and generator counts after the first change are
-            traced symbolically, so later shapes reuse the graph. If compilation fails (e.g. no C++
-            compiler), a warning says why and the step runs eagerly from then on.
+            the on-disk cache warm); the batch is symbolic and the generator width fixed at
+            ``max_generators``, so every later shape reuses the graph. If compilation fails (e.g.
+            no C++ compiler), a warning says why and the step runs eagerly from then on.
         step_functions: the model's copies of the step to compile, for steps without and with
             tangents (:meth:`step_function`; new ones if ``None``).
 
