@@ -22,7 +22,10 @@ from torchrl_brsl.collision import (
     facet_table,
     intersects,
     is_full_dimensional,
+    pair_facets,
+    pair_gauge,
 )
+from torchrl_brsl.collision import closed_form
 from torchrl_brsl.collision.closed_form import _PAIR_FACETS, facet_clearances, gauge_values
 from torchrl_brsl.collision.lp import SOLVER_ARGS, gauge_layer
 from torchrl_brsl.sets import Zonotope
@@ -234,7 +237,7 @@ def test_pair_tables_split_the_support_products_exactly(n):
     g_sets = torch.cat((g, -2 * g[..., :1], torch.zeros(H, 1, n, 1, dtype=torch.float64)), -1)
     g_obs = torch.cat((torch.diag_embed(0.1 + torch.rand(1, K, n, generator=gen, dtype=torch.float64)),
                        g_sets[:1, :, :, 1:2].expand(1, K, n, 1)), -1)  # one column parallel to a set's
-    _, _, full = _PAIR_FACETS[n](g_sets, g_obs)
+    full = _PAIR_FACETS[n](g_sets, g_obs).full
     assert full.shape == (H, K) and full.all()
     split = ZonotopeCollisionChecker(g_sets, g_obs, deduplicate=False)
     own = facet_table(torch.cat((g_sets.expand(H, K, n, p + 2), g_obs.expand(H, K, n, n + 1)), -1))
@@ -254,6 +257,50 @@ def test_pair_tables_split_the_support_products_exactly(n):
 
 
 @pytest.mark.parametrize("n", [2, 3])
+def test_pair_gauge_gives_the_tables_values_and_attaining_rows_without_forming_them(n):
+    """``pair_gauge`` on ``pair_facets`` (normals per owner, 3-D mixed supports by the triple product) gives
+    the values of each pair's own table and of HiGHS, parallel and zero columns included, and the row it
+    picks attains the value: ``|picked| = value`` and ``picked = weights . offset``."""
+    gen = torch.Generator().manual_seed(70 + n)
+    H, K, B, p = 6, 5, 4, 9
+    g = 0.3 * torch.randn(H, 1, n, p, generator=gen, dtype=torch.float64)
+    g_sets = torch.cat((g, -2 * g[..., :1], torch.zeros(H, 1, n, 1, dtype=torch.float64)), -1)
+    g_obs = torch.cat((torch.diag_embed(0.1 + torch.rand(1, K, n, generator=gen, dtype=torch.float64)),
+                       g_sets[:1, :, :, 1:2].expand(1, K, n, 1)), -1)
+    offsets = torch.randn(B, H, K, n, generator=gen, dtype=torch.float64)
+    values, picked, weights = pair_gauge(offsets, pair_facets(g_sets, g_obs))
+    own = facet_table(torch.cat((g_sets.expand(H, K, n, p + 2), g_obs.expand(H, K, n, n + 1)), -1))
+    torch.testing.assert_close(values, gauge_values(offsets, own), rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(picked.abs(), values, rtol=0, atol=0)
+    torch.testing.assert_close((weights * offsets).sum(-1), picked, rtol=1e-12, atol=1e-12)
+    sets = Zonotope(torch.zeros(B * H * K, n, dtype=torch.float64), g_sets.expand(B, H, K, n, p + 2).reshape(
+        -1, n, p + 2))
+    obstacles = Zonotope(offsets.reshape(-1, n), g_obs.expand(B, H, K, n, n + 1).reshape(-1, n, n + 1))
+    np.testing.assert_allclose(np64(values).ravel(), highs_values(sets, obstacles), rtol=1e-8)
+
+
+def test_mixed_rows_rounding_bound_keeps_every_value_below_the_gauge(monkeypatch):
+    """3-D set generators exactly or nearly (1e-12) parallel to an obstacle's: their crosses are rounding
+    noise, whose supports the triple products do not measure. With the rounding bound every value stays
+    at or below HiGHS's gauge (a collision is never missed); without it (teeth) some pair claims more."""
+    gen = torch.Generator().manual_seed(72)
+    N, p = 64, 6
+    shared = torch.randn(N, 3, 1, generator=gen, dtype=torch.float64)
+    g_obs = torch.cat((torch.diag_embed(0.1 + torch.rand(N, 3, generator=gen, dtype=torch.float64)), shared), -1)
+    tilt = 1e-12 * torch.randn(N, 3, 1, generator=gen, dtype=torch.float64)
+    g_sets = torch.cat((torch.randn(N, 3, p, generator=gen, dtype=torch.float64), shared, -2 * shared,
+                        shared + tilt), -1)
+    offsets = 3 * torch.randn(N, 3, generator=gen, dtype=torch.float64)
+    sets = Zonotope(torch.zeros(N, 3, dtype=torch.float64), g_sets)
+    reference = torch.as_tensor(highs_values(sets, Zonotope(offsets, g_obs)))
+    values = pair_gauge(offsets, pair_facets(g_sets, g_obs))[0]
+    assert (values <= reference * (1 + 1e-8)).all()
+    monkeypatch.setattr(closed_form, "_triple_rounding", lambda g1, g2: 0.0)
+    unbounded = pair_gauge(offsets, pair_facets(g_sets, g_obs))[0]
+    assert (unbounded > reference * (1 + 1e-6)).any()
+
+
+@pytest.mark.parametrize("n", [2, 3])
 @pytest.mark.parametrize("ratio", [0.0, 1e-12, 1e-9, 1e-8, 3e-8, 6e-8, 1e-7, 1e-6, 1e-4, 1.0])
 def test_pair_full_dimensional_test_never_accepts_what_the_singular_values_reject(n, ratio):
     """Near-flat pairs at singular-value ratios around the threshold ``sqrt(eps) ≈ 1.5e-8``: the determinant
@@ -264,7 +311,7 @@ def test_pair_full_dimensional_test_never_accepts_what_the_singular_values_rejec
     g1 = turn @ torch.diag(scales) @ torch.randn(32, n, 5, generator=gen, dtype=torch.float64).sign()
     eye = torch.eye(n, dtype=torch.float64)
     g2 = turn @ torch.diag(scales) @ (eye + 0.5 * eye.roll(1, 1))
-    _, _, full = _PAIR_FACETS[n](g1, g2)
+    full = _PAIR_FACETS[n](g1, g2).full
     svd = is_full_dimensional(torch.cat((g1, g2), -1))
     assert not (full & ~svd).any()
     if ratio >= (1e-6 if n == 2 else 1e-4):

@@ -2,10 +2,12 @@
 
 :func:`check_collision`, :func:`collision_value`, :func:`intersects` and :func:`clearance`
 share one interface and choose the back end; :class:`ZonotopeCollisionChecker` caches the
-facet data of fixed generators for the per-step hot path of the safety layer.
+facet data of fixed generators for the per-step hot path of the safety layer; :func:`pair_facets` and
+:func:`pair_gauge` check sets whose generators change at every step without forming each pair's table.
 """
 from torchrl_brsl.collision.api import BACKENDS, LP_TOL, check_collision, clearance, collision_value, intersects
-from torchrl_brsl.collision.closed_form import FacetTable, ZonotopeCollisionChecker, facet_table, is_full_dimensional
+from torchrl_brsl.collision.closed_form import (FacetTable, PairFacets, ZonotopeCollisionChecker, facet_table,
+                                                is_full_dimensional, pair_facets, pair_gauge)
 from torchrl_brsl.collision.lp import SOLVER_ARGS, solve_distance, solve_gauge
 from torchrl_brsl.collision.result import CollisionResult, CollisionStatus
 
@@ -16,6 +18,7 @@ __all__ = [
     "CollisionResult",
     "CollisionStatus",
     "FacetTable",
+    "PairFacets",
     "ZonotopeCollisionChecker",
     "check_collision",
     "clearance",
@@ -23,6 +26,8 @@ __all__ = [
     "facet_table",
     "intersects",
     "is_full_dimensional",
+    "pair_facets",
+    "pair_gauge",
     "solve_distance",
     "solve_gauge",
 ]

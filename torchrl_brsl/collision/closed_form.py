@@ -27,7 +27,7 @@ from torch import Tensor
 
 from torchrl_brsl.collision.result import CollisionResult, CollisionStatus
 from torchrl_brsl.sets._checks import check_same_dtype_device, check_tensor
-from torchrl_brsl.sets.facets import facet_normals, facet_supports
+from torchrl_brsl.sets.facets import _pairs, facet_normals, facet_supports
 
 CLOSED_FORM_DIMS = (1, 2, 3)
 
@@ -101,9 +101,42 @@ def _table(h: Tensor, sigma: Tensor, deduplicate: bool) -> FacetTable:
     return FacetTable(weights, normals, supports)
 
 
-def _planar_pair_facets(set_generators: Tensor, obstacle_generators: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Candidate normals and supports of ``Z(0, [G1, G2])`` for every pair of a 2-D batch, and
-    whether each pair is surely full-dimensional, from the sets' own products.
+class PairFacets(NamedTuple):
+    """Candidate facet data of ``Z(0, [G1, G2])`` for every (set, obstacle) pair, kept by owner.
+
+    The rows come in groups: the normals of the sets' own generators, in 3-D those of a set and an
+    obstacle generator, and those of the obstacles' own. Normals are stored once per owner and
+    broadcast over the other's batch, so that a check never materialises every pair's ``[K, n]``
+    table (:func:`pair_gauge`).
+
+    Attributes:
+        normals: per group ``[..., N_g, n]``, broadcastable to the pair batch; ``None`` for the
+            group of the crosses ``g1_i × g2_j`` of ``crossed`` (``i`` major), never formed.
+        supports: per group ``[..., N_g]`` over the pair batch, ``sigma_k >= sum_j |h_k . g_j|``
+            (``0``: a row that is no direction).
+        full: ``[...]`` whether each pair is surely full-dimensional, which the closed form needs.
+        crossed: ``(G1 [..., 3, p1], G2 [..., 3, p2])`` for the group ``None``, else ``None``.
+    """
+
+    normals: tuple[Tensor | None, ...]
+    supports: tuple[Tensor, ...]
+    full: Tensor
+    crossed: tuple[Tensor, Tensor] | None = None
+
+    def joined(self) -> tuple[Tensor, Tensor]:
+        """Every pair's normals ``[..., K, n]`` and supports ``[..., K]``, groups in order."""
+        batch = self.full.shape
+        normals = [self._crosses() if h is None else h for h in self.normals]
+        normals = torch.cat([h.expand(*batch, *h.shape[-2:]) for h in normals], -2)
+        return normals, torch.cat([s.expand(*batch, s.shape[-1]) for s in self.supports], -1)
+
+    def _crosses(self) -> Tensor:
+        g1, g2 = self.crossed
+        return torch.linalg.cross(g1.mT.unsqueeze(-2), g2.mT.unsqueeze(-3), dim=-1).flatten(-3, -2)
+
+
+def _planar_pair_facets(set_generators: Tensor, obstacle_generators: Tensor) -> PairFacets:
+    """The :class:`PairFacets` of every pair of a 2-D batch, from the sets' own products.
 
     In 2-D the normals are the generators turned by 90°, ``h(g) . g' = g × g'``, so the pair's
     ``[p, p]`` support product splits into ``G1 × G1`` and ``G2 × G2`` (computed once per set and
@@ -120,52 +153,177 @@ def _planar_pair_facets(set_generators: Tensor, obstacle_generators: Tensor) -> 
         obstacle_generators: ``[..., 2, p2]``; batch shapes broadcast.
 
     Returns:
-        ``(normals [..., p1 + p2, 2], supports [..., p1 + p2], full [...])`` over the broadcast
-        batch, rows in the order of ``facet_normals(cat(G1, G2))``.
+        Two groups, the sets' ``p1`` normals then the obstacles' ``p2`` (the rows of
+        ``facet_normals(cat(G1, G2))`` in their order).
     """
     g1, g2 = set_generators, obstacle_generators
     h1, h2 = facet_normals(g1), facet_normals(g2)
-    own1, own2, cross = h1 @ g1, h2 @ g2, h1 @ g2  # [S1, p1, p1], [S2, p2, p2], [..., p1, p2]
-    batch = cross.shape[:-2]
-    p1, p2 = g1.shape[-1], g2.shape[-1]
-    supports = torch.cat((own1.abs().sum(-1) + cross.abs().sum(-1), own2.abs().sum(-1) + cross.abs().sum(-2)), -1)
-    normals = torch.cat((h1.expand(*batch, p1, 2), h2.expand(*batch, p2, 2)), -2)
-    det = (own1.square().sum((-1, -2)) + own2.square().sum((-1, -2))) / 2 + cross.square().sum((-1, -2))
-    trace = g1.square().sum((-1, -2)) + g2.square().sum((-1, -2))  # tr(G G^T) >= lambda_max
-    full = det > 16 * torch.finfo(det.dtype).eps * trace.square()
-    return normals, supports.expand(*batch, p1 + p2), full.expand(batch)
+    own1, own2 = h1 @ g1, h2 @ g2  # [S1, p1, p1], [S2, p2, p2]
+    cross = torch.einsum("...in,...nj->...ij", h1, g2)  # [..., p1, p2]; einsum: one product per owner, not per pair
+    supports = (own1.abs().sum(-1) + cross.abs().sum(-1), own2.abs().sum(-1) + cross.abs().sum(-2))
+    det = (_squared_norm(own1) + _squared_norm(own2)) / 2 + _squared_norm(cross)
+    full = det > 16 * torch.finfo(det.dtype).eps * _squared_norm(g1, g2).square()  # tr(G G^T) >= lambda_max
+    return PairFacets((h1, h2), supports, full.expand(cross.shape[:-2]))
 
 
-def _spatial_pair_facets(set_generators: Tensor, obstacle_generators: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """:func:`_planar_pair_facets` in 3-D: the normals ``g_i × g_j`` of two set generators are the
-    set's own (``[p1 (p1 - 1) / 2, 3]``, their supports over ``G1`` computed once per set), those
-    of a set and an obstacle generator and of two obstacle generators are per pair or per
-    obstacle; per pair ``3 p1 p1 p2 / 2 + 2 p1 p2 p2`` products instead of ``(p1 + p2)^3 / 2``.
-    The products give ``3 det(G G^T)`` (every triple three times, Cauchy–Binet); a pair is full
-    when ``det > 16 eps tr^3``: then ``s_min^2 >= det / tr^2 > 16 eps s_max^2``.
+def _spatial_pair_facets(set_generators: Tensor, obstacle_generators: Tensor) -> PairFacets:
+    """:func:`_planar_pair_facets` in 3-D. The normals ``g1_i × g1_k`` of two set generators are the
+    set's own (their supports over ``G1`` computed once per set), those of two obstacle generators
+    the obstacle's own; per pair only the products ``X = (g1_i × g1_k) . g2_j`` and ``Z = (g2_j ×
+    g2_l) . g1_i`` are formed (``p1 (p1 - 1) p2 / 2 + p2 (p2 - 1) p1 / 2``). The mixed normals
+    ``g1_i × g2_j`` need neither a vector nor products of their own: by the triple product
+    ``|(g1_i × g2_j) . g1_k| = |X_{ik,j}|`` and ``|(g1_i × g2_j) . g2_l| = |Z_{jl,i}|``, so their supports
+    are sums of the same entries (one product with each side's pair incidence). Those supports are
+    raised by a bound on the rounding of the identity, ``(p1 + p2 + 32) eps |g1_i| |g2_j| sum_k |g_k|``:
+    a nearly parallel ``g1_i, g2_j`` has a crossed vector of rounding size whose support the triple
+    products do not measure, and without the bound its row could claim a gauge above the true one
+    (a collision missed); with it every row's value is a lower bound of the gauge, and the bound is
+    ``1e-13`` of a well-conditioned row's support. Every triple's determinant appears once in ``X``
+    or ``Z`` or three times in the own products, which gives ``det(G G^T)`` by Cauchy–Binet; a pair
+    is full when ``det > 16 eps tr^3``: then ``s_min^2 >= det / tr^2 > 16 eps s_max^2``.
 
     Returns:
-        ``(normals [..., K, 3], supports [..., K], full [...])`` with ``K = (p1 + p2)(p1 + p2 - 1) / 2``
-        (the rows of ``facet_normals(cat(G1, G2))``, in another order).
+        Three groups: the sets' ``p1 (p1 - 1) / 2`` normals, the pairs' ``p1 p2`` crosses (``None``,
+        see :class:`PairFacets`) and the obstacles' ``p2 (p2 - 1) / 2``: the rows of
+        ``facet_normals(cat(G1, G2))`` in another order.
     """
     g1, g2 = set_generators, obstacle_generators
+    p1, p2 = g1.shape[-1], g2.shape[-1]
     h11, h22 = facet_normals(g1), facet_normals(g2)  # [S1, N1, 3], [S2, N2, 3]
-    h12 = torch.linalg.cross(g1.transpose(-1, -2).unsqueeze(-2), g2.transpose(-1, -2).unsqueeze(-3), dim=-1)
-    h12 = h12.flatten(-3, -2)  # [..., p1 p2, 3]
-    products = (h11 @ g1, h11 @ g2, h12 @ g1, h12 @ g2, h22 @ g1, h22 @ g2)
-    batch = h12.shape[:-2]
-    sums = [p.abs().sum(-1) for p in products]
-    supports = torch.cat(((sums[0] + sums[1]).expand(*batch, -1), sums[2] + sums[3], (sums[4] + sums[5]).expand(
-        *batch, -1)), -1)
-    normals = torch.cat((h11.expand(*batch, *h11.shape[-2:]), h12, h22.expand(*batch, *h22.shape[-2:])), -2)
-    det = sum(p.square().sum((-1, -2)) for p in products) / 3
-    trace = g1.square().sum((-1, -2)) + g2.square().sum((-1, -2))
-    full = det > 16 * torch.finfo(det.dtype).eps * trace ** 3
-    return normals, supports, full.expand(batch)
+    own1, own2 = h11 @ g1, h22 @ g2  # [S1, N1, p1], [S2, N2, p2]
+    # einsum: one product per owner, not per pair; contiguous: the reductions below run along rows
+    x = torch.einsum("...fn,...nj->...jf", h11, g2).contiguous().abs_()  # [..., p2, N1]
+    z = torch.einsum("...fn,...ni->...if", h22, g1).contiguous().abs_()  # [..., p1, N2]
+    mixed = (x @ _incidence(p1, g1)).mT + z @ _incidence(p2, g2)  # [..., p1, p2]
+    mixed = mixed + _triple_rounding(g1, g2)
+    supports = (own1.abs().sum(-1) + x.sum(-2), mixed.flatten(-2), own2.abs().sum(-1) + z.sum(-2))
+    det = (_squared_norm(own1) + _squared_norm(own2)) / 3 + _squared_norm(x) + _squared_norm(z)
+    full = det > 16 * torch.finfo(det.dtype).eps * _squared_norm(g1, g2) ** 3
+    return PairFacets((h11, None, h22), supports, full.expand(mixed.shape[:-2]), (g1, g2))
+
+
+def _triple_rounding(g1: Tensor, g2: Tensor) -> Tensor:
+    """``(p1 + p2 + 32) eps |g1_i| |g2_j| sum_k |g_k|`` ``[..., p1, p2]``: what rounding may take from a mixed row's
+    support computed by the triple product (the crossed vector's, the products' and the sums' rounding)."""
+    norms1, norms2 = g1.norm(dim=-2), g2.norm(dim=-2)  # [S1, p1], [S2, p2]
+    total = norms1.sum(-1) + norms2.sum(-1)
+    units = (g1.shape[-1] + g2.shape[-1] + 32) * torch.finfo(g1.dtype).eps
+    return units * norms1.unsqueeze(-1) * norms2.unsqueeze(-2) * total[..., None, None]
+
+
+def _squared_norm(*matrices: Tensor) -> Tensor:
+    """``sum ||M||_F^2`` over the last two dims of each, broadcast: ``[...]`` (one reduction, no squares formed)."""
+    return sum(torch.linalg.vector_norm(m, dim=(-2, -1)).square() for m in matrices)
+
+
+_INCIDENCE: dict[tuple[int, torch.dtype, str], Tensor] = {}
+
+
+def _incidence(p: int, like: Tensor) -> Tensor:
+    """``[p (p - 1) / 2, p]``: 1 where generator ``i`` is in the pair (pairs in :func:`facet_normals`'s order)."""
+    key = (p, like.dtype, str(like.device))
+    if key not in _INCIDENCE:
+        i, k = _pairs(p, like.device)
+        rows = torch.arange(len(i), device=like.device)
+        incidence = torch.zeros(len(i), p, dtype=like.dtype, device=like.device)
+        incidence[rows, i] = 1.0
+        incidence[rows, k] = 1.0
+        _INCIDENCE[key] = incidence
+    return _INCIDENCE[key]
 
 
 #: per dimension, the normals and supports of every (set, obstacle) pair from the sets' own products
 _PAIR_FACETS = {2: _planar_pair_facets, 3: _spatial_pair_facets}
+
+
+def pair_facets(set_generators: Tensor, obstacle_generators: Tensor, widen: bool = False) -> PairFacets:
+    """The :class:`PairFacets` of ``Z(0, [G1, G2])`` for every pair of the broadcast batch (unchecked input).
+
+    In 2-D and 3-D by owner (:data:`_PAIR_FACETS`) when every pair is surely full-dimensional;
+    otherwise one group from each pair's own products, where the singular values decide and flat
+    pairs are widened (``widen``, see :class:`ZonotopeCollisionChecker`) or refused.
+
+    Args:
+        set_generators: ``[..., n, p1]``, ``n`` in {1, 2, 3}.
+        obstacle_generators: ``[..., n, p2]``.
+    """
+    g1, g2 = set_generators, obstacle_generators
+    n = g1.shape[-2]
+    if n in _PAIR_FACETS:
+        split = _PAIR_FACETS[n](g1, g2)
+        if bool(split.full.all()):
+            return split
+    batch = torch.broadcast_shapes(g1.shape[:-2], g2.shape[:-2])
+    generators = widened_pairs(g1, g2, batch, widen)
+    normals = facet_normals(generators)
+    full = torch.ones(batch, dtype=torch.bool, device=g1.device)
+    return PairFacets((normals,), (facet_supports(normals, generators),), full)
+
+
+def widened_pairs(g1: Tensor, g2: Tensor, batch: torch.Size, widen: bool) -> Tensor:
+    """``[G1, G2]`` of every pair, :data:`WIDEN_SHARE` boxes on the flat ones (``widen``), else a ``ValueError``."""
+    generators = torch.cat((g1.expand(*batch, *g1.shape[-2:]), g2.expand(*batch, *g2.shape[-2:])), dim=-1)
+    full = is_full_dimensional(generators)
+    if bool(full.all()):
+        return generators
+    if not widen:
+        raise ValueError(
+            "`set_generators` and `obstacle_generators`: Z(0, [G1, G2]) is not full-dimensional for some "
+            "pair; the closed form does not apply (use collision_value(..., backend='lp'))"
+        )
+    n = generators.shape[-2]
+    radius = torch.where(full, 0.0, WIDEN_SHARE * generators.norm(dim=(-2, -1)))
+    return torch.cat((generators, torch.diag_embed(radius.unsqueeze(-1).expand(*radius.shape, n))), -1)
+
+
+def pair_gauge(offsets: Tensor, facets: PairFacets) -> tuple[Tensor, Tensor, Tensor]:
+    """The closed-form value of every pair at ``offsets`` ``[..., n]`` (obstacle centre minus set centre)
+    and its attaining row, without forming any pair's table.
+
+    Returns:
+        ``(values [...], picked [...], weights [..., n])``: ``v* = max_k |h_k . x| / sigma_k``, the
+        signed ``h_k . x / sigma_k`` of the row attaining it and that row's ``h_k / sigma_k``
+        (zeros where no row is a direction). Differentiable w.r.t. ``offsets``.
+    """
+    ratios = []
+    for normals, supports in zip(facets.normals, facets.supports):
+        if normals is None:  # (g1_i × g2_j) . x = g1_i . (g2_j × x)
+            g1, g2 = facets.crossed
+            turned = torch.linalg.cross(*torch.broadcast_tensors(g2.mT, offsets.unsqueeze(-2)))  # [..., p2, 3]
+            products = torch.einsum("...ni,...jn->...ij", g1, turned).flatten(-2)
+        else:
+            products = torch.einsum("...fn,...n->...f", normals, offsets)
+        valid = supports > 0
+        ratios.append(torch.where(valid, products / torch.where(valid, supports, 1.0), 0.0))
+    ratios = torch.cat(ratios, -1)
+    values, best = ratios.abs().max(-1)
+    picked = ratios.gather(-1, best.unsqueeze(-1)).squeeze(-1)
+    return values, picked, _picked_weights(facets, best, offsets.shape[-1])
+
+
+def _picked_weights(facets: PairFacets, best: Tensor, n: int) -> Tensor:
+    """``h_k / sigma_k`` ``[..., n]`` of the rows ``best`` ``[...]`` (indices into the groups in order)."""
+    weights = torch.zeros(*best.shape, n, dtype=facets.supports[0].dtype, device=best.device)
+    start = 0
+    for normals, supports in zip(facets.normals, facets.supports):
+        count = supports.shape[-1]
+        index = (best - start).clamp(0, count - 1)
+        if normals is None:
+            g1, g2 = (g.mT.expand(*best.shape, *g.mT.shape[-2:]) for g in facets.crossed)
+            p2 = g2.shape[-2]
+            rows = torch.linalg.cross(_rows(g1, index // p2), _rows(g2, index % p2))
+        else:
+            rows = _rows(normals.expand(*best.shape, count, n), index)
+        sigma = supports.expand(*best.shape, count).gather(-1, index.unsqueeze(-1))
+        valid = (best >= start) & (best < start + count) & (sigma.squeeze(-1) > 0)
+        weights = torch.where(valid.unsqueeze(-1), rows / torch.where(sigma > 0, sigma, 1.0), weights)
+        start += count
+    return weights
+
+
+def _rows(matrix: Tensor, index: Tensor) -> Tensor:
+    """``matrix[..., index, :]`` for ``matrix`` ``[..., R, n]`` and ``index`` ``[...]``: ``[..., n]``."""
+    return matrix.gather(-2, index[..., None, None].expand(*index.shape, 1, matrix.shape[-1])).squeeze(-2)
 
 
 def is_full_dimensional(generators: Tensor) -> Tensor:
@@ -268,30 +426,9 @@ class ZonotopeCollisionChecker:
         if g2.shape[-2] != n:
             raise ValueError(
                 f"`obstacle_generators` must be [..., {n}, p2] like `set_generators`, got {tuple(g2.shape)}")
-        batch = _broadcast("obstacle_generators", g2.shape[:-2], g1.shape[:-2])
-        split = _PAIR_FACETS[n](g1, g2) if n in _PAIR_FACETS else None
-        if split is not None and bool(split[2].all()):
-            self.table = _table(*split[:2], deduplicate)
-        else:  # the pairs' own products; the singular values decide, and flat pairs get a box
-            self.table = facet_table(self._widened(g1, g2, batch, widen), deduplicate=deduplicate)
-        self.batch_shape = batch
+        self.batch_shape = _broadcast("obstacle_generators", g2.shape[:-2], g1.shape[:-2])
+        self.table = _table(*pair_facets(g1, g2, widen).joined(), deduplicate)
         self.dim = n
-
-    @staticmethod
-    def _widened(g1: Tensor, g2: Tensor, batch: torch.Size, widen: bool) -> Tensor:
-        """``[G1, G2]`` of every pair, :data:`WIDEN_SHARE` boxes on the flat ones (``widen``), else a ``ValueError``."""
-        generators = torch.cat((g1.expand(*batch, *g1.shape[-2:]), g2.expand(*batch, *g2.shape[-2:])), dim=-1)
-        full = is_full_dimensional(generators)
-        if bool(full.all()):
-            return generators
-        if not widen:
-            raise ValueError(
-                "`set_generators` and `obstacle_generators`: Z(0, [G1, G2]) is not full-dimensional for some "
-                "pair; the closed form does not apply (use collision_value(..., backend='lp'))"
-            )
-        n = generators.shape[-2]
-        radius = torch.where(full, 0.0, WIDEN_SHARE * generators.norm(dim=(-2, -1)))
-        return torch.cat((generators, torch.diag_embed(radius.unsqueeze(-1).expand(*radius.shape, n))), -1)
 
     @property
     def n_facets(self) -> int:
@@ -359,10 +496,14 @@ def _broadcast(name: str, shape, batch) -> torch.Size:
 
 __all__ = [
     "FacetTable",
+    "PairFacets",
     "ZonotopeCollisionChecker",
     "facet_clearances",
     "facet_table",
     "finite_offsets",
     "gauge_values",
     "is_full_dimensional",
+    "pair_facets",
+    "pair_gauge",
+    "widened_pairs",
 ]

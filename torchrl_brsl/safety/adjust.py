@@ -155,10 +155,8 @@ class GradientAdjuster:
                 break
             position_jacobian, stop_jacobian = jacobians(evaluation)
             values = evaluation.values  # masked: inf; non-finite: 0 (no gradient, as with autograd)
-            picked = gauge.products.gather(-1, gauge.best.unsqueeze(-1)).squeeze(-1)  # [B, T, K]
-            coef = torch.where((values < threshold) & (values > 0), picked.sign(), 0.0)
-            weights = gauge.picked_weights()  # [B, T, K, d]
-            per_step = (coef.unsqueeze(-2) @ weights).squeeze(-2)  # [B, T, d]
+            coef = torch.where((values < threshold) & (values > 0), gauge.picked.sign(), 0.0)  # [B, T, K]
+            per_step = (coef.unsqueeze(-2) @ gauge.weights).squeeze(-2)  # [B, T, d]
             grad = (per_step.flatten(1).unsqueeze(1) @ position_jacobian.flatten(-3, -2)).squeeze(1)  # [B, N]
             if checker.stop_dims:
                 final = _stop_centres(checker, evaluation.centers)  # [B, s]
@@ -243,8 +241,8 @@ class FacetQPAdjuster:
             pos_jac, stop_jac = affine.position_jacobian, affine.stop_jacobian  # [T, d, N], [s, N]
         # lock each (step, obstacle) pair to the facet attaining its value under the reference:
         # s w . (c_o - p_ref - J dz) >= level   <=>   (s w J) dz <= s w . Δ_ref - level
-        picked = gauge.products.gather(-1, gauge.best.unsqueeze(-1)).squeeze(-1)  # [B, T, K]
-        weights = gauge.picked_weights() * picked.sign().unsqueeze(-1)  # [B, T, K, d]
+        picked = gauge.picked  # [B, T, K]
+        weights = gauge.weights * picked.sign().unsqueeze(-1)  # [B, T, K, d]
         rows = (weights @ pos_jac).flatten(1, 2)  # [B, T K, N]
         value_ref = picked.abs()
         bounds = torch.where(obstacles.mask.unsqueeze(-2), (value_ref - (1 + self.target_margin)).clamp_min(0),

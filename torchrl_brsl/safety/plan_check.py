@@ -8,7 +8,7 @@ from typing import Any, Callable, NamedTuple, Sequence
 import torch
 from torch import Tensor
 
-from torchrl_brsl.collision import ZonotopeCollisionChecker, collision_value
+from torchrl_brsl.collision import PairFacets, ZonotopeCollisionChecker, collision_value, pair_facets, pair_gauge
 from torchrl_brsl.collision.closed_form import CLOSED_FORM_DIMS
 from torchrl_brsl.reach import DataDrivenReach, stack_steps
 from torchrl_brsl.safety.failsafe import Failsafe
@@ -63,7 +63,8 @@ class PlanChecker:
     policy) the centres of all ``T`` sets are one affine map of the measured state and the
     plan, precomputed per plan length, so a check costs one product for the centres and one
     for the collision values. For a local model (the default) the sets depend on the plan:
-    they are computed step by step and the facet table is built per check.
+    they are computed step by step and each check builds their facet data against the obstacles,
+    kept per owner and never as a table per pair (:func:`~torchrl_brsl.collision.pair_facets`).
 
     Args:
         reach: the fitted reachability model.
@@ -144,6 +145,7 @@ class PlanChecker:
         self._obstacle_generators: Tensor | None = None
         self._checker: ZonotopeCollisionChecker | None = None
         self._columns: tuple[Tensor, ...] = ()
+        self._facets: PairFacets | None = None  # a plan-dependent model's, per check
         self._memo: dict = {}
         self._position_index = _index(self.position_dims)
         self._stop_index = _index(self.stop_dims)
@@ -424,8 +426,11 @@ class PlanChecker:
         return self.collision == "lp" or needs_lp
 
     def _closed_form_values(self, positions: Tensor, obstacles: Obstacles, detail: bool) -> tuple[Tensor, Gauge | None]:
-        """``v*`` ``[B, T, K]`` from the cached facet table, with the :class:`Gauge` when ``detail``."""
+        """``v*`` ``[B, T, K]`` from the facet data, with the :class:`Gauge` when ``detail``."""
         offsets = obstacles.center.unsqueeze(-3) - positions.unsqueeze(-2)  # [B, T, K, d]
+        if self.plan_dependent:
+            values, picked, weights = pair_gauge(offsets, self._facets)
+            return values, Gauge(picked, weights) if detail else None
         parts = offsets.unsqueeze(-1).unbind(-2)  # d x [B, T, K, 1]
         products = self._columns[0] * parts[0]  # [B, T, K, F]
         for column, part in zip(self._columns[1:], parts[1:]):
@@ -433,7 +438,10 @@ class PlanChecker:
         if not detail:
             return products.abs().amax(-1), None
         values, best = products.abs().max(-1)
-        return values, Gauge(products, best, self._checker.table.weights)
+        table = self._checker.table.weights  # [(B,) T, K, F, d]
+        index = best.unsqueeze(-1).unsqueeze(-1).expand(*best.shape, 1, table.shape[-1])
+        weights = table.expand(*best.shape, *table.shape[-2:]).gather(-2, index).squeeze(-2)
+        return values, Gauge(products.gather(-1, best.unsqueeze(-1)).squeeze(-1), weights)
 
     def _projected(self, sets: Zonotope) -> Tensor:
         """Generators ``[B, T, d, ps]`` of plan-dependent sets on the obstacle space, reduced to ``set_width``.
@@ -448,12 +456,10 @@ class PlanChecker:
         return reduce_girard(torch.cat((positions, floor), dim=-1), self.set_width)
 
     def _plan_checker(self, projected: Tensor, obstacle_generators: Tensor) -> None:
-        """Facet table of plan-dependent sets (projected, ``[B, T, d, ps]``) against the obstacles ``[B, K, d, p]``."""
-        # used once per check: deduplicating its facets (O(K^2) per pair) costs more than it saves
-        self._checker = ZonotopeCollisionChecker(projected.unsqueeze(-3), obstacle_generators.unsqueeze(-4),
-                                                 deduplicate=False, widen=True)
-        self._columns = tuple(w.contiguous() for w in self._checker.table.weights.unbind(-1))
-        self._obstacle_generators = None  # the cached table no longer matches any obstacle batch
+        """Facet data of plan-dependent sets (projected, ``[B, T, d, ps]``) against the obstacles ``[B, K, d, p]``:
+        kept by owner (used once per check, never as a table of every pair)."""
+        self._facets = pair_facets(projected.detach().unsqueeze(-3), obstacle_generators.detach().unsqueeze(-4),
+                                   widen=True)
 
 
 class AffineRollout(NamedTuple):
@@ -480,19 +486,17 @@ class AffineRollout(NamedTuple):
 
 
 class Gauge(NamedTuple):
-    """Internals of a check: ``products`` ``[B, T, K, F]`` are ``w_f . (c_obstacle - c_set)``,
-    ``best`` ``[B, T, K]`` the facet attaining each value (where ``max_f |products|`` is) and
-    ``weights`` ``[B, T, K, F, d]`` (or broadcastable) the facets' ``w_f``."""
+    """What the adjusters linearise of a closed-form check: for every (step, obstacle) pair, the facet
+    ``f`` attaining its value ``max_f |w_f . (c_obstacle - c_set)|``.
 
-    products: Tensor
-    best: Tensor
+    Attributes:
+        picked: ``[B, T, K]`` the signed ``w_f . (c_obstacle - c_set)`` of that facet (its absolute
+            value is the pair's value).
+        weights: ``[B, T, K, d]`` that facet's ``w_f``.
+    """
+
+    picked: Tensor
     weights: Tensor
-
-    def picked_weights(self) -> Tensor:
-        """The weights ``w_f`` ``[B, T, K, d]`` of the facets attaining the values."""
-        weights = self.weights.expand(*self.best.shape, *self.weights.shape[-2:])
-        index = self.best.unsqueeze(-1).unsqueeze(-1).expand(*self.best.shape, 1, weights.shape[-1])
-        return weights.gather(-2, index).squeeze(-2)
 
 
 def _lp_values(positions: Tensor, projected: Tensor, obstacles: Obstacles) -> Tensor:
