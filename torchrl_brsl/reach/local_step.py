@@ -141,7 +141,7 @@ class LocalStep:
                       tangents: tuple[Tensor, Tensor] | None) -> tuple[Tensor, ...]:
         """The compiled step on shapes that keep one graph per use (inference, tangents, autograd): a flat,
         contiguous batch of at least 2 (sizes 0 and 1 are specialised by the compiler) marked dynamic,
-        and exactly ``max_generators`` columns (zero padding; a wider input is reduced first), so the
+        never a view (a view's guards read its base), and exactly ``max_generators`` columns (zero padding; a wider input is reduced first), so the
         reduction takes the same branch at every step."""
         batch = center.shape[:-1]
         if generators.shape[:-2] != batch or action.shape[:-1] != batch:
@@ -153,6 +153,8 @@ class LocalStep:
             if tensor.ndim != event + 1 or tensor.shape[0] != count or count < 2 or not tensor.is_contiguous():
                 tensor = tensor.expand(*batch, *tensor.shape[tensor.ndim - event:]).reshape(-1, *tensor.shape[-event:])
                 tensor = tensor.expand(max(count, 2), *tensor.shape[1:]).contiguous()
+            if tensor._base is not None:  # the graph guards on a view's base: one kind of input, views or not
+                tensor = tensor.clone()
             torch._dynamo.mark_dynamic(tensor, 0)
             return tensor
 
