@@ -141,8 +141,8 @@ class LocalStep:
                       tangents: tuple[Tensor, Tensor] | None) -> tuple[Tensor, ...]:
         """The compiled step on shapes that keep one graph per use (inference, tangents, autograd): a flat,
         contiguous batch of at least 2 (sizes 0 and 1 are specialised by the compiler) marked dynamic,
-        never a view (a view's guards read its base), and exactly ``max_generators`` columns (zero padding; a wider input is reduced first), so the
-        reduction takes the same branch at every step."""
+        never a view (a view's guards read its base), and exactly ``max_generators`` columns (zero
+        padding; a wider input is reduced first), so the reduction takes the same branch at every step."""
         batch = center.shape[:-1]
         if generators.shape[:-2] != batch or action.shape[:-1] != batch:
             batch = torch.broadcast_shapes(batch, generators.shape[:-2], action.shape[:-1])
