@@ -9,8 +9,6 @@ import envs
 from torchrl_brsl.baselines import LinearSafetyModel, SECASSafetyLayer, fit_safety_model, secas_correction
 from torchrl_brsl.reach import collect_offline_data
 
-from baselines_support import boxes
-
 
 def test_corrected_action_satisfies_the_linearised_constraint():
     gen = torch.Generator().manual_seed(0)

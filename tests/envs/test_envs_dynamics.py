@@ -116,7 +116,7 @@ def test_noise_stays_in_the_noise_zonotope(name):
     info = envs.safety_info(name)
     env = envs.make(name, seed=0, empty=True)
     env.reset()
-    physics, task = env.physics, env.task
+    task = env.task
     rng = np.random.RandomState(0)
     c = info.noise_center.double().numpy()
     G = info.noise_generators.double().numpy()

@@ -22,7 +22,6 @@ from collections.abc import Callable, Sequence
 
 import torch
 from tensordict import TensorDictBase
-from tensordict.utils import NestedKey
 from torch import Tensor
 
 from torchrl_brsl.baselines._common import ActionFilter, check_dims, obstacle_tensors, point_clearance

@@ -18,7 +18,6 @@ from collections.abc import Sequence
 
 import torch
 from tensordict import TensorDict, TensorDictBase
-from tensordict.utils import NestedKey
 from torch import Tensor, nn
 
 from torchrl_brsl.baselines._common import ActionFilter, check_dims, obstacle_tensors, point_clearance
