@@ -311,9 +311,9 @@ def _picked_weights(facets: PairFacets, best: Tensor, n: int) -> Tensor:
         if normals is None:
             g1, g2 = (g.mT.expand(*best.shape, *g.mT.shape[-2:]) for g in facets.crossed)
             p2 = g2.shape[-2]
-            rows = torch.linalg.cross(_rows(g1, index // p2), _rows(g2, index % p2))
+            rows = torch.linalg.cross(rows_at(g1, index // p2), rows_at(g2, index % p2))
         else:
-            rows = _rows(normals.expand(*best.shape, count, n), index)
+            rows = rows_at(normals.expand(*best.shape, count, n), index)
         sigma = supports.expand(*best.shape, count).gather(-1, index.unsqueeze(-1))
         valid = (best >= start) & (best < start + count) & (sigma.squeeze(-1) > 0)
         weights = torch.where(valid.unsqueeze(-1), rows / torch.where(sigma > 0, sigma, 1.0), weights)
@@ -321,8 +321,9 @@ def _picked_weights(facets: PairFacets, best: Tensor, n: int) -> Tensor:
     return weights
 
 
-def _rows(matrix: Tensor, index: Tensor) -> Tensor:
-    """``matrix[..., index, :]`` for ``matrix`` ``[..., R, n]`` and ``index`` ``[...]``: ``[..., n]``."""
+def rows_at(matrix: Tensor, index: Tensor) -> Tensor:
+    """``matrix[..., index, :]`` for ``matrix`` ``[..., R, n]`` and ``index`` ``[...]``: ``[..., n]`` (one row per
+    batch entry, e.g. the facet attaining each value)."""
     return matrix.gather(-2, index[..., None, None].expand(*index.shape, 1, matrix.shape[-1])).squeeze(-2)
 
 
@@ -505,5 +506,6 @@ __all__ = [
     "is_full_dimensional",
     "pair_facets",
     "pair_gauge",
+    "rows_at",
     "widened_pairs",
 ]

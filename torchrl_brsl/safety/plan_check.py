@@ -9,7 +9,7 @@ import torch
 from torch import Tensor
 
 from torchrl_brsl.collision import PairFacets, ZonotopeCollisionChecker, collision_value, pair_facets, pair_gauge
-from torchrl_brsl.collision.closed_form import CLOSED_FORM_DIMS
+from torchrl_brsl.collision.closed_form import CLOSED_FORM_DIMS, rows_at
 from torchrl_brsl.reach import DataDrivenReach, stack_steps
 from torchrl_brsl.safety.failsafe import Failsafe
 from torchrl_brsl.sets import Obstacles, Zonotope, reduce_girard
@@ -378,7 +378,7 @@ class PlanChecker:
             centers = sets.center
             projected = self._projected(sets)
             if not lp:
-                self._plan_checker(projected, obstacles.generators)
+                self._plan_facets(projected, obstacles.generators)
             stop_room = (self.stop_slack.expand(centers.shape[0], -1) if self.stop_slack is not None else
                          self.stop_tolerance - _take(sets.generators[:, -1].abs().sum(-1), self._stop_index))
             if self.reach.bounded_domain:  # every step starts inside the model's domain
@@ -439,8 +439,7 @@ class PlanChecker:
             return products.abs().amax(-1), None
         values, best = products.abs().max(-1)
         table = self._checker.table.weights  # [(B,) T, K, F, d]
-        index = best.unsqueeze(-1).unsqueeze(-1).expand(*best.shape, 1, table.shape[-1])
-        weights = table.expand(*best.shape, *table.shape[-2:]).gather(-2, index).squeeze(-2)
+        weights = rows_at(table.expand(*best.shape, *table.shape[-2:]), best)
         return values, Gauge(products.gather(-1, best.unsqueeze(-1)).squeeze(-1), weights)
 
     def _projected(self, sets: Zonotope) -> Tensor:
@@ -455,7 +454,7 @@ class PlanChecker:
         floor = torch.diag_embed(positions.new_full(positions.shape[:-1], MIN_SET_RADIUS))
         return reduce_girard(torch.cat((positions, floor), dim=-1), self.set_width)
 
-    def _plan_checker(self, projected: Tensor, obstacle_generators: Tensor) -> None:
+    def _plan_facets(self, projected: Tensor, obstacle_generators: Tensor) -> None:
         """Facet data of plan-dependent sets (projected, ``[B, T, d, ps]``) against the obstacles ``[B, K, d, p]``:
         kept by owner (used once per check, never as a table of every pair)."""
         self._facets = pair_facets(projected.detach().unsqueeze(-3), obstacle_generators.detach().unsqueeze(-4),
