@@ -1,11 +1,13 @@
 """Per-step latency of the safety layer with the constant brake against a state-dependent one.
 
 Same setting as ``bench_layer.py`` (``diffdrive_nav``, 10 obstacles, ``n_plan = 10``, one CPU
-thread, the layer's ``compute_time``). The state-dependent brake here returns the zero command,
-i.e. the same actions as the constant brake, so every difference in time is the code path:
-with a braking policy the braking tail is rolled out step by step and the gradient adjuster
-differentiates through it, where the constant brake makes every centre one affine map of
-(state, plan). Both reachability models are timed; only the global one has that fast path.
+thread, the layer's ``compute_time``). The state-dependent brakes here return the zero command
+(``policy``), or ``1e-9`` times the velocity (``linear policy``: the same actions to 1e-9, but a
+derivative that is not zero), i.e. the constant brake's actions, so every difference in time is
+the code path: with a braking policy the braking tail is rolled out step by step and the
+adjusters linearise it along that rollout (one ``n x n`` product per tail step where the
+policy's derivative is not zero), where the constant brake makes every centre one affine map of
+(state, plan). Both reachability models are timed; only the global one has those fast paths.
 
 Usage: ``python benchmarks/bench_failsafe.py [--quick]``
 """
@@ -35,10 +37,12 @@ def main() -> None:
     data = collect_offline_data(envs.make(TASK, empty=True, seed=1), 500, generator=torch.Generator().manual_seed(0))
     steps = 30 if args.quick else 120
     zero = info.braking_action
+    velocity = list(info.velocity_dims)
     brakes = {"constant": Failsafe(zero, info.n_brk),
-              "policy": Failsafe(zero, info.n_brk, policy=lambda x: zero.to(x).expand(*x.shape[:-1], -1))}
+              "policy": Failsafe(zero, info.n_brk, policy=lambda x: zero.to(x).expand(*x.shape[:-1], -1)),
+              "linear": Failsafe(zero, info.n_brk, policy=lambda x: zero.to(x) + 1e-9 * x[..., velocity])}
     print(f"{TASK}: n_plan = {N_PLAN}, n_brk = {info.n_brk}, one CPU thread; median / p99 ms per step")
-    print(f"{'':<52}{'constant brake':>18}{'braking policy':>18}{'ratio':>8}")
+    print(f"{'':<44}{'constant brake':>16}{'policy':>16}{'linear policy':>16}{'ratios':>12}")
     for method in ("global", "local"):
         reach = DataDrivenReach.from_data(data, noise, translation_invariant_dims=info.position_dims,
                                           max_generators=30, method=method)
@@ -52,8 +56,9 @@ def main() -> None:
                                         adjuster=adjuster())
                 times = episode_times(layer, steps, towards_wall, 0)
                 row[name] = stats(times[12:] if towards_wall else times[5:])
-            (m0, p0), (m1, p1) = row["constant"], row["policy"]
-            print(f"{method + ': ' + label:<52}{m0:>9.2f} /{p0:>6.1f}{m1:>11.2f} /{p1:>6.1f}{m1 / m0:>8.1f}")
+            (m0, p0), (m1, p1), (m2, p2) = row["constant"], row["policy"], row["linear"]
+            print(f"{method + ': ' + label:<44}{m0:>9.2f} /{p0:>5.1f}{m1:>9.2f} /{p1:>5.1f}{m2:>9.2f} /{p2:>5.1f}"
+                  f"{m1 / m0:>6.1f}{m2 / m0:>6.1f}")
 
 
 if __name__ == "__main__":

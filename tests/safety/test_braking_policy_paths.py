@@ -51,6 +51,16 @@ def test_linearised_tail_matches_finite_differences(checker, plan_steps):
     torch.testing.assert_close(exact, numeric, rtol=0, atol=1e-6)
 
 
+def test_saturated_tail_takes_the_open_loop_jacobian(checker):
+    """Braking clipped along the whole tail: the cached open-loop Jacobian, still the rollout's own."""
+    x0 = torch.tensor([[0.0, 0.0, 2.8, -2.8], [0.3, 0.0, -2.9, 2.9]], dtype=D)
+    plan = torch.tensor([[[1.0, -1.0]] * N_PLAN, [[-1.0, 1.0]] * N_PLAN], dtype=D)
+    _, centres = checker.rollout(x0, plan)
+    assert bool((brake_policy(centres[:, N_PLAN - 1:-1]).abs() == 0.8).all())
+    exact = _feedback_jacobian(checker, centres, N_PLAN)
+    torch.testing.assert_close(exact, _centre_jacobian(checker, x0, plan).flatten(-2), rtol=0, atol=1e-6)
+
+
 @pytest.mark.parametrize("iterations", [1, 4, 15])
 def test_gradient_adjuster_with_a_braking_policy_matches_autograd(checker, iterations):
     x0, plan, centers, generators, mask = scene()

@@ -342,28 +342,26 @@ def _feedback_jacobian(checker: PlanChecker, centers: Tensor, plan_steps: int) -
     The first ``P`` centres are affine in the plan (the model's block-Toeplitz input map); each
     tail step ``c_{j+1} = A c_j + B clip(π(c_j)) + k`` multiplies the Jacobian by
     ``A + B Dπ(c_j)``, with ``Dπ`` evaluated at the nominal ``centers`` ``[B, T, n]`` (one
-    batched backward pass per action dim) and zero where the braking action is clipped.
+    batched backward pass per action dim) and zero where the braking action is clipped. Where
+    ``Dπ`` vanishes along the whole tail (a saturated brake, a policy constant there) this is
+    the open-loop map's Jacobian, cached, and no product is formed.
     """
     reach = checker.reach
     n_envs, horizon, n = centers.shape
-    m = reach.action_dim
-    def build():
-        blocks = reach._transfer(horizon)[1].view(horizon, n, horizon, m)[:plan_steps, :, :plan_steps]
-        return blocks.reshape(plan_steps, n, plan_steps * m).to(centers).contiguous()
-
-    plan_part = checker.memo(("plan jacobian", plan_steps, centers.dtype, centers.device), build)  # [P, n, P m]
-    jacobians = [plan_part.expand(n_envs, *plan_part.shape)]
+    open_loop = checker.memo(("open-loop jacobian", plan_steps, horizon, centers.dtype, centers.device), lambda: (
+        reach._transfer(horizon)[1].view(horizon, n, horizon, reach.action_dim)[:, :, :plan_steps]
+        .reshape(horizon, n, -1).to(centers).contiguous()))  # [T, n, P m]
     n_tail = horizon - plan_steps
-    if n_tail:
-        derivative = _brake_derivative(checker, centers[:, plan_steps - 1:horizon - 1])  # [B, n_tail, m, n]
-        closed_loop = reach.state_matrix.to(centers) + reach.input_matrix.to(centers) @ derivative  # [B, n_tail, n, n]
-        current = jacobians[0][:, -1]
-        tail = []
-        for k in range(n_tail):
-            current = closed_loop[:, k] @ current
-            tail.append(current)
-        jacobians.append(torch.stack(tail, dim=1))
-    return torch.cat(jacobians, dim=1)
+    derivative = _brake_derivative(checker, centers[:, plan_steps - 1:horizon - 1]) if n_tail else None
+    if derivative is None or not bool(derivative.any()):
+        return open_loop.expand(n_envs, *open_loop.shape)
+    closed_loop = reach.state_matrix.to(centers) + reach.input_matrix.to(centers) @ derivative  # [B, n_tail, n, n]
+    current = open_loop[plan_steps - 1].expand(n_envs, -1, -1)
+    tail = []
+    for k in range(n_tail):
+        current = closed_loop[:, k] @ current
+        tail.append(current)
+    return torch.cat((open_loop[:plan_steps].expand(n_envs, -1, -1, -1), torch.stack(tail, dim=1)), dim=1)
 
 
 def _brake_derivative(checker: PlanChecker, states: Tensor) -> Tensor:

@@ -230,11 +230,15 @@ class PlanChecker:
         """
         if self.failsafe.policy is not None or self.plan_dependent:
             return None
+        return self._memo_affine(int(plan_steps), self.horizon, dtype, device)
+
+    def _memo_affine(self, plan_steps: int, horizon: int, dtype: torch.dtype | None,
+                     device: torch.device | None) -> AffineRollout:
         A = self.reach.state_matrix
         dtype = A.dtype if dtype is None else dtype
         device = A.device if device is None else device
-        return self.memo(("affine", int(plan_steps), dtype, device),
-                         lambda: self._build_affine(int(plan_steps)).to(dtype, device))
+        return self.memo(("affine", plan_steps, horizon, dtype, device),
+                         lambda: self._build_affine(plan_steps, horizon).to(dtype, device))
 
     def memo(self, key: tuple, build: Callable[[], Any]) -> Any:
         """``build()``, computed once per ``key`` and kept: tables that depend only on the checker's
@@ -244,8 +248,8 @@ class PlanChecker:
             self._memo[key] = build()
         return self._memo[key]
 
-    def _build_affine(self, plan_steps: int) -> AffineRollout:
-        horizon, n, m = self.horizon, self.reach.state_dim, self.reach.action_dim
+    def _build_affine(self, plan_steps: int, horizon: int) -> AffineRollout:
+        n, m = self.reach.state_dim, self.reach.action_dim
         n_tail = horizon - plan_steps
         if n_tail < 0:
             raise ValueError(f"the plan has {plan_steps} steps, more than the horizon T={horizon}")
@@ -267,10 +271,15 @@ class PlanChecker:
     def affine_for(self, x0: Tensor, plan: Tensor) -> AffineRollout | None:
         """:meth:`affine` when it applies to this batch: open-loop braking, ``x0`` ``[B, n]`` and
         ``plan`` ``[B, P, m]`` in the model's dtype."""
-        if (self.failsafe.policy is not None or self.plan_dependent or x0.ndim != 2 or plan.ndim != 3
-                or plan.dtype != self.reach.state_matrix.dtype):
+        if self.failsafe.policy is not None or not self._affine_batch(x0, plan):
             return None
         return self.affine(plan.shape[1], plan.dtype, plan.device)
+
+    def _affine_batch(self, x0: Tensor, plan: Tensor) -> bool:
+        """A global model, ``x0`` ``[B, n]`` and ``plan`` ``[B, P, m]`` in its dtype: the plan's centres
+        are one cached affine map."""
+        return (not self.plan_dependent and x0.ndim == 2 and plan.ndim == 3
+                and plan.dtype == self.reach.state_matrix.dtype)
 
     def rollout(self, x0: Tensor, plan: Tensor) -> tuple[Tensor, Tensor]:
         """Nominal centres of ``plan`` followed by braking up to the horizon.
@@ -289,27 +298,27 @@ class PlanChecker:
         if self.failsafe.policy is None:  # open-loop braking: the whole sequence is affine in the plan
             affine = self.affine_for(x0, plan)
             if affine is not None:
-                n_envs, plan_steps, m = plan.shape
-                centers = torch.addmm(affine.constant, x0.to(plan.dtype), affine.state_map)
-                centers = centers.addmm_(plan.reshape(n_envs, plan_steps * m), affine.plan_map)
-                actions = torch.cat((plan, affine.tail.expand(n_envs, n_tail, m)), dim=1)
-                return actions, centers.view(n_envs, self.horizon, -1)
+                return _apply_affine(affine, x0, plan)
             actions = torch.cat((plan, self.hold(plan).expand(plan.shape[0], n_tail, -1)), dim=1)
             return actions, self.reach.reach_centers(x0, actions)
-        centers = self.reach.reach_centers(x0, plan)
-        actions = [plan]
-        A, B, k = self.reach.state_matrix, self.reach.input_matrix, self.reach.offset
+        if self._affine_batch(x0, plan):  # the plan's part is affine: the same cached map, without a tail
+            _, centers = _apply_affine(self._memo_affine(plan.shape[1], plan.shape[1], plan.dtype, plan.device),
+                                       x0, plan)
+        else:
+            centers = self.reach.reach_centers(x0, plan)
+        A_T, B_T, k = self.memo(("tail map", centers.dtype, centers.device), lambda: tuple(
+            t.to(centers) for t in (self.reach.state_matrix.T, self.reach.input_matrix.T, self.reach.offset)))
         c = centers[:, -1]
         tail_centers, tail_actions = [], []
         for _ in range(n_tail):
             u = self.brake(c)
-            c = c @ A.T + u @ B.T + k
+            c = torch.addmm(k, c, A_T).addmm_(u, B_T)
             tail_actions.append(u)
             tail_centers.append(c)
-        if tail_actions:
-            actions.append(torch.stack(tail_actions, dim=1))
-            centers = torch.cat((centers, torch.stack(tail_centers, dim=1)), dim=1)
-        return torch.cat(actions, dim=1), centers
+        if not n_tail:
+            return plan, centers
+        return (torch.cat((plan, torch.stack(tail_actions, dim=1)), dim=1),
+                torch.cat((centers, torch.stack(tail_centers, dim=1)), dim=1))
 
     def rollout_sets(self, x0: Tensor, plan: Tensor) -> tuple[Tensor, Zonotope, Tensor]:
         """Reachable sets of ``plan`` followed by braking up to the horizon (a local model).
@@ -349,8 +358,12 @@ class PlanChecker:
 
     def brake(self, states: Tensor) -> Tensor:
         """The braking policy's action at ``states`` ``[..., n]`` as the robot receives it: ``[..., m]``."""
-        brake = torch.minimum(torch.maximum(self.failsafe.actions(states), self.action_low), self.action_high)
-        return brake.to(self.action_dtype).to(states.dtype)
+        raw = self.failsafe.actions(states)
+        low, high = self.action_low, self.action_high
+        if low.dtype != raw.dtype or low.device != raw.device:
+            low, high = low.to(raw), high.to(raw)
+        brake = torch.clamp(raw, low, high)
+        return brake if self.action_dtype == brake.dtype else brake.to(self.action_dtype).to(states.dtype)
 
     def evaluate(self, x0: Tensor, plan: Tensor, obstacles: Obstacles) -> PlanEvaluation:
         """Verify a batch of plans from measured states.
@@ -496,6 +509,15 @@ class Gauge(NamedTuple):
 
     picked: Tensor
     weights: Tensor
+
+
+def _apply_affine(affine: AffineRollout, x0: Tensor, plan: Tensor) -> tuple[Tensor, Tensor]:
+    """``(actions [B, T, m], centers [B, T, n])`` of ``plan`` ``[B, P, m]`` from ``x0`` ``[B, n]`` by the cached map."""
+    n_envs, plan_steps, m = plan.shape
+    centers = torch.addmm(affine.constant, x0.to(plan.dtype), affine.state_map)
+    centers = centers.addmm_(plan.reshape(n_envs, plan_steps * m), affine.plan_map)
+    actions = torch.cat((plan, affine.tail.expand(n_envs, -1, m)), dim=1) if affine.tail.shape[0] else plan
+    return actions, centers.view(n_envs, -1, x0.shape[-1])
 
 
 def _lp_values(positions: Tensor, projected: Tensor, obstacles: Obstacles) -> Tensor:
