@@ -8,8 +8,11 @@ the code path: with a braking policy the braking tail is rolled out step by step
 adjusters linearise it along that rollout (one ``n x n`` product per tail step where the
 policy's derivative is not zero), where the constant brake makes every centre one affine map of
 (state, plan). Both reachability models are timed; only the global one has those fast paths.
+``--compile`` runs the global model's braking tails compiled (``DataDrivenReach.compile_steps``:
+one graph for the tail's rollout and one for its Jacobian chain, compiled in the untimed first steps) and
+times the global model only.
 
-Usage: ``python benchmarks/bench_failsafe.py [--quick]``
+Usage: ``python benchmarks/bench_failsafe.py [--quick] [--compile]``
 """
 from __future__ import annotations
 
@@ -30,6 +33,7 @@ from torchrl_brsl.sets import Zonotope  # noqa: E402
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--compile", action="store_true", help="the global model's braking tails compiled")
     args = parser.parse_args()
     torch.set_num_threads(1)
     info = envs.safety_info(TASK)
@@ -43,9 +47,11 @@ def main() -> None:
               "linear": Failsafe(zero, info.n_brk, policy=lambda x: zero.to(x) + 1e-9 * x[..., velocity])}
     print(f"{TASK}: n_plan = {N_PLAN}, n_brk = {info.n_brk}, one CPU thread; median / p99 ms per step")
     print(f"{'':<44}{'constant brake':>16}{'policy':>16}{'linear policy':>16}{'ratios':>12}")
-    for method in ("global", "local"):
+    for method in ("global",) if args.compile else ("global", "local"):
         reach = DataDrivenReach.from_data(data, noise, translation_invariant_dims=info.position_dims,
                                           max_generators=30, method=method)
+        if args.compile:
+            reach.compile_steps()
         for label, adjuster, towards_wall in (("safe proposals", GradientAdjuster, False),
                                               ("adjusting: projected gradient", GradientAdjuster, True),
                                               ("adjusting: facet-locked QP", FacetQPAdjuster, True)):

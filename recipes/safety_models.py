@@ -93,9 +93,9 @@ def horizon(cfg: DictConfig) -> tuple[int, int]:
 def make_layer(cfg: DictConfig, models: SafetyModels) -> BRSLSafetyLayer:
     """The safety layer with the task's :func:`layer_settings`; stopped = final centre within the slack of rest."""
     settings = layer_settings(cfg)
-    if compiles_reach(cfg):
+    if compiles_reach(cfg):  # a local model's steps; a global one's braking-policy tail (PlanChecker)
         for model in models:
-            if model is not None and model.plan_dependent:
+            if model is not None:
                 model.compile_steps()
     adjuster = None if cfg.method.adjuster == "none" else cfg.method.adjuster  # the layer's registry checks the name
     return BRSLSafetyLayer(

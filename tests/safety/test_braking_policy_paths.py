@@ -1,6 +1,9 @@
 """With a state-dependent braking policy on a global model, the adjusters linearise the braking
 tail along the nominal rollout instead of differentiating through it: same gradients as
 autograd, every accepted plan still checked exactly."""
+import copy
+import warnings
+
 import pytest
 import torch
 
@@ -80,3 +83,35 @@ def test_facet_qp_with_a_braking_policy_accepts_only_verified_plans(checker):
     again = checker.evaluate(x0, result.plan, obstacles_of(centers, generators, mask))
     assert torch.equal(again.safe, result.evaluation.safe) and result.evaluation.safe.all()
     assert not torch.equal(result.plan, reference)  # it moved towards the proposal
+
+
+def _compiled_checker(checker, **compile_kwargs):
+    reach = copy.deepcopy(checker.reach).compile_steps(**compile_kwargs)
+    return PlanChecker(reach, checker.failsafe, checker.horizon, stop_dims=checker.stop_dims, stop_slack=0.3,
+                       action_low=checker.action_low, action_high=checker.action_high)
+
+
+@pytest.mark.filterwarnings("error::RuntimeWarning")  # no fallback to eager
+@pytest.mark.parametrize("n_envs", [1, 3])
+def test_compiled_braking_tail_matches_the_eager_one(checker, n_envs):
+    """With compiled steps the tail's rollout and its Jacobian chain run as one graph: same values."""
+    compiled = _compiled_checker(checker, backend="aot_eager")
+    x0, plan, *_ = scene()
+    x0, plan = x0[:n_envs], plan[:n_envs, :2] * 0.5
+    for got, want in zip(compiled.rollout(x0, plan), checker.rollout(x0, plan)):
+        torch.testing.assert_close(got, want, rtol=0, atol=1e-12)
+    centres = checker.rollout(x0, plan)[1]
+    assert bool((brake_policy(centres[:, 1:-1]).abs() < 0.8).any())  # the chain runs, not the open-loop shortcut
+    torch.testing.assert_close(_feedback_jacobian(compiled, centres, 2), _feedback_jacobian(checker, centres, 2),
+                               rtol=0, atol=1e-12)
+
+
+def test_a_failing_compilation_warns_and_runs_eagerly(checker):
+    with pytest.warns(RuntimeWarning, match="compiled _policy_tail failed"):  # at the warm-up
+        compiled = _compiled_checker(checker, backend="no_such_backend")
+    x0, plan, *_ = scene()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # warned once, then eager
+        got = compiled.rollout(x0, plan)
+    for got_part, want in zip(got, checker.rollout(x0, plan)):
+        torch.testing.assert_close(got_part, want, rtol=0, atol=0)

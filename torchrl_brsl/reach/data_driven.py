@@ -405,8 +405,9 @@ class DataDrivenReach(nn.Module):
         graph takes about a minute with an empty cache, seconds once the on-disk cache holds it.
         ``warm_up`` compiles the checking and the adjusters' linearisation graphs here, on two
         offline states, so that no control step stalls on it (the graphs of gradients through the
-        steps, for the gradient adjuster, compile on first use). The global model has no steps to
-        compile: it only records the choice.
+        steps, for the gradient adjuster, compile on first use). A global model's steps are one
+        affine map and stay eager: it records the choice for the rollout of a braking policy's tail
+        (:class:`~torchrl_brsl.safety.PlanChecker`), which follows it (:attr:`compile_options`).
 
         Calling it again with the same arguments keeps the compiled graphs.
 
@@ -416,13 +417,14 @@ class DataDrivenReach(nn.Module):
             **compile_kwargs: passed to :func:`torch.compile` (e.g. ``backend="aot_eager"``).
 
         Raises:
-            ValueError: without ``max_generators`` (the compiled step keeps the generator matrix at that width).
+            ValueError: a local model without ``max_generators`` (the compiled step keeps the generator matrix
+                at that width).
 
         Examples:
             >>> reach = DataDrivenReach.fit(x, xp, u, noise, translation_invariant_dims=(0, 1), max_generators=30)
             >>> reach = reach.compile_steps()
         """
-        if enabled and self.max_generators is None:
+        if enabled and self.plan_dependent and self.max_generators is None:
             raise ValueError("`compile_steps` needs `max_generators` (a fixed width of the sets' generator "
                              "matrices keeps one compiled graph); fit the model with `max_generators=...`")
         if enabled and self._compile is not None and self._compile[0] == compile_kwargs:
@@ -438,6 +440,11 @@ class DataDrivenReach(nn.Module):
                 self.step_sets(center, generators, action)
                 self.step_sets(center, generators, action, tangents)
         return self
+
+    @property
+    def compile_options(self) -> dict | None:
+        """The :func:`torch.compile` arguments given to :meth:`compile_steps`, or ``None`` for eager steps."""
+        return None if self._compile is None else dict(self._compile[0])
 
     @property
     def _leaf_rows(self) -> Tensor:

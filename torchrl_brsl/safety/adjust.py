@@ -356,12 +356,18 @@ def _feedback_jacobian(checker: PlanChecker, centers: Tensor, plan_steps: int) -
     if derivative is None or not bool(derivative.any()):
         return open_loop.expand(n_envs, *open_loop.shape)
     closed_loop = reach.state_matrix.to(centers) + reach.input_matrix.to(centers) @ derivative  # [B, n_tail, n, n]
-    current = open_loop[plan_steps - 1].expand(n_envs, -1, -1)
-    tail = []
-    for k in range(n_tail):
-        current = closed_loop[:, k] @ current
-        tail.append(current)
-    return torch.cat((open_loop[:plan_steps].expand(n_envs, -1, -1, -1), torch.stack(tail, dim=1)), dim=1)
+    (tail,) = checker.run_fused(_chain, closed_loop, open_loop[plan_steps - 1])
+    return torch.cat((open_loop[:plan_steps].expand(n_envs, -1, -1, -1), tail), dim=1)
+
+
+def _chain(factors: Tensor, start: Tensor, fused: bool = False) -> tuple[Tensor]:
+    """The running products ``F_k ... F_1 S`` of ``factors`` ``[B, K, n, n]`` and ``start`` ``[n, N]``:
+    ``([B, K, n, N],)``. ``fused``: as sums of broadcast products, which a compiler fuses across steps."""
+    current, out = start.expand(factors.shape[0], *start.shape), []
+    for factor in factors.unbind(1):
+        current = (factor.unsqueeze(-1) * current.unsqueeze(-3)).sum(-2) if fused else factor @ current
+        out.append(current)
+    return (torch.stack(out, dim=1),)
 
 
 def _brake_derivative(checker: PlanChecker, states: Tensor) -> Tensor:

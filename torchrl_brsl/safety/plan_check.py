@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import copy
+import types
 import warnings
 from typing import Any, Callable, NamedTuple, Sequence
 
@@ -154,6 +155,9 @@ class PlanChecker:
         # a model of a restricted domain: the boxes of R_0 (a point) .. R_{T-1} must stay in it
         self._domain_radius = (torch.cat((errors.new_zeros(1, errors.shape[1]), errors[:-1].abs().sum(-1)))
                                if reach.bounded_domain and not self.plan_dependent else None)
+        if reach.compile_options is not None and failsafe.policy is not None and not self.plan_dependent:
+            with torch.no_grad():  # compile the one-action plans' braking tail now, not at a control step
+                self.rollout(self.stop_radius.new_zeros(1, reach.state_dim), self.hold(self.stop_radius).view(1, 1, -1))
         vacuous = self.vacuous_stop_dims()
         if vacuous:
             top, tolerance = self._top_speed(), self._stop_tolerance_at_rest()
@@ -306,19 +310,48 @@ class PlanChecker:
                                        x0, plan)
         else:
             centers = self.reach.reach_centers(x0, plan)
-        A_T, B_T, k = self.memo(("tail map", centers.dtype, centers.device), lambda: tuple(
-            t.to(centers) for t in (self.reach.state_matrix.T, self.reach.input_matrix.T, self.reach.offset)))
-        c = centers[:, -1]
-        tail_centers, tail_actions = [], []
-        for _ in range(n_tail):
-            u = self.brake(c)
-            c = torch.addmm(k, c, A_T).addmm_(u, B_T)
-            tail_actions.append(u)
-            tail_centers.append(c)
         if not n_tail:
             return plan, centers
-        return (torch.cat((plan, torch.stack(tail_actions, dim=1)), dim=1),
-                torch.cat((centers, torch.stack(tail_centers, dim=1)), dim=1))
+        tail_actions, tail_centers = self._braking_tail(centers[:, -1], n_tail)
+        return torch.cat((plan, tail_actions), dim=1), torch.cat((centers, tail_centers), dim=1)
+
+    def _braking_tail(self, center: Tensor, steps: int) -> tuple[Tensor, Tensor]:
+        """The braking policy rolled out on the nominal model from ``center`` ``[B, n]`` (a global model):
+        ``(actions [B, steps, m], centers [B, steps, n])`` (:func:`_policy_tail`, through :meth:`run_fused`)."""
+        A_T, B_T, k = self.memo(("tail map", center.dtype, center.device), lambda: tuple(
+            t.to(center) for t in (self.reach.state_matrix.T, self.reach.input_matrix.T, self.reach.offset)))
+        return self.run_fused(_policy_tail, center, self.failsafe.policy, A_T, B_T, k, self.action_low.to(center),
+                              self.action_high.to(center), self.action_dtype, steps)
+
+    def run_fused(self, function: Callable, batch: Tensor, *args) -> Any:
+        """``function(batch, *args, fused=...)``: compiled when the model's steps are
+        (:attr:`~torchrl_brsl.reach.DataDrivenReach.compile_options`), with ``fused=True``, else eagerly.
+
+        A loop over the braking tail costs a few operations per step eagerly; compiled, it is one
+        graph (one per value of the non-tensor arguments, e.g. the tail's length). ``batch``
+        ``[B, ...]`` is padded to at least 2 rows and marked dynamic (the compiler specialises sizes
+        0 and 1), so every batch size shares the graph; the results' leading dims are ``B``. The
+        function is compiled from its own copy of the code, kept in the memo the checker's subsets
+        share, so its graphs and the compiler's limit on recompilations are this checker's. A
+        compilation that fails warns and runs eagerly from then on.
+        """
+        options = self.reach.compile_options
+        if options is None or self._memo.get(("eager", function)) or not len(batch):
+            return function(batch, *args)
+        try:
+            compiled = self.memo(("compiled", function, repr(sorted(options.items()))), lambda: torch.compile(
+                types.FunctionType(function.__code__.replace(), function.__globals__, function.__name__), **options))
+            count = batch.shape[0]
+            padded = batch.expand(2, *batch.shape[1:]) if count < 2 else batch
+            padded = padded.contiguous() if padded._base is None else padded.clone()
+            torch._dynamo.mark_dynamic(padded, 0)
+            return tuple(t[:count] for t in compiled(padded, *args, fused=True))
+        except Exception as error:  # the compiler's failure must not stop a control loop
+            reason = (str(error).strip().splitlines() or [""])[-1]
+            warnings.warn(f"the compiled {function.__name__} failed ({type(error).__name__}: {reason}); running it "
+                          "eagerly from now on", RuntimeWarning, stacklevel=2)
+            self._memo[("eager", function)] = True
+            return function(batch, *args)
 
     def rollout_sets(self, x0: Tensor, plan: Tensor) -> tuple[Tensor, Zonotope, Tensor]:
         """Reachable sets of ``plan`` followed by braking up to the horizon (a local model).
@@ -358,12 +391,10 @@ class PlanChecker:
 
     def brake(self, states: Tensor) -> Tensor:
         """The braking policy's action at ``states`` ``[..., n]`` as the robot receives it: ``[..., m]``."""
-        raw = self.failsafe.actions(states)
         low, high = self.action_low, self.action_high
-        if low.dtype != raw.dtype or low.device != raw.device:
-            low, high = low.to(raw), high.to(raw)
-        brake = torch.clamp(raw, low, high)
-        return brake if self.action_dtype == brake.dtype else brake.to(self.action_dtype).to(states.dtype)
+        if low.dtype != states.dtype or low.device != states.device:
+            low, high = low.to(states), high.to(states)
+        return _brake_action(self.failsafe.actions, states, low, high, self.action_dtype)
 
     def evaluate(self, x0: Tensor, plan: Tensor, obstacles: Obstacles) -> PlanEvaluation:
         """Verify a batch of plans from measured states.
@@ -509,6 +540,32 @@ class Gauge(NamedTuple):
 
     picked: Tensor
     weights: Tensor
+
+
+def _brake_action(policy: Callable[[Tensor], Tensor], states: Tensor, low: Tensor, high: Tensor,
+                  action_dtype: torch.dtype) -> Tensor:
+    """``policy(states)`` as the robot receives it: clipped to ``[low, high]``, rounded to ``action_dtype``,
+    in the dtype of ``states`` ``[..., n]``: ``[..., m]``."""
+    brake = torch.clamp(policy(states).to(states.dtype), low, high)
+    return brake if action_dtype == brake.dtype else brake.to(action_dtype).to(states.dtype)
+
+
+def _policy_tail(center: Tensor, policy: Callable[[Tensor], Tensor], A_T: Tensor, B_T: Tensor, k: Tensor,
+                 low: Tensor, high: Tensor, action_dtype: torch.dtype, steps: int,
+                 fused: bool = False) -> tuple[Tensor, Tensor]:
+    """``steps`` of ``u = brake(c)``, ``c <- c A^T + u B^T + k`` from ``center`` ``[B, n]``: ``(actions [B, steps, m],
+    centers [B, steps, n])``. ``fused``: the products as sums of broadcast products, which a compiler fuses
+    across steps (eager, the matrix products are faster)."""
+    actions, centers = [], []
+    for _ in range(steps):
+        u = _brake_action(policy, center, low, high, action_dtype)
+        if fused:
+            center = k + (center.unsqueeze(-1) * A_T).sum(-2) + (u.unsqueeze(-1) * B_T).sum(-2)
+        else:
+            center = torch.addmm(k, center, A_T).addmm_(u, B_T)
+        actions.append(u)
+        centers.append(center)
+    return torch.stack(actions, dim=1), torch.stack(centers, dim=1)
 
 
 def _apply_affine(affine: AffineRollout, x0: Tensor, plan: Tensor) -> tuple[Tensor, Tensor]:
