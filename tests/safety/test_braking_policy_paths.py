@@ -10,6 +10,7 @@ import torch
 from torchrl_brsl.reach import DataDrivenReach, DoubleIntegrator
 from torchrl_brsl.safety import FacetQPAdjuster, Failsafe, PlanChecker
 from torchrl_brsl.safety.adjust import _centre_jacobian, _feedback_jacobian
+from torchrl_brsl.safety.plan_check import FUSE_FROM_STEPS
 
 from safety_support import assert_closed_form_matches_autograd, obstacles_of
 
@@ -85,33 +86,49 @@ def test_facet_qp_with_a_braking_policy_accepts_only_verified_plans(checker):
     assert not torch.equal(result.plan, reference)  # it moved towards the proposal
 
 
-def _compiled_checker(checker, **compile_kwargs):
-    reach = copy.deepcopy(checker.reach).compile_steps(**compile_kwargs)
-    return PlanChecker(reach, checker.failsafe, checker.horizon, stop_dims=checker.stop_dims, stop_slack=0.3,
+LONG = N_PLAN + FUSE_FROM_STEPS + 2  # a horizon whose braking tails run compiled
+
+
+def _checker_on(reach, checker, horizon):
+    return PlanChecker(reach, checker.failsafe, horizon, stop_dims=checker.stop_dims, stop_slack=0.3,
                        action_low=checker.action_low, action_high=checker.action_high)
+
+
+def _compiled(checker):
+    return [key for key in checker._memo if key[0] == "compiled"]
 
 
 @pytest.mark.filterwarnings("error::RuntimeWarning")  # no fallback to eager
 @pytest.mark.parametrize("n_envs", [1, 3])
 def test_compiled_braking_tail_matches_the_eager_one(checker, n_envs):
-    """With compiled steps the tail's rollout and its Jacobian chain run as one graph: same values."""
-    compiled = _compiled_checker(checker, backend="aot_eager")
+    """With compiled steps the long tail's rollout and its Jacobian chain run as one graph each: same values."""
+    eager = _checker_on(checker.reach, checker, LONG)
+    compiled = _checker_on(copy.deepcopy(checker.reach).compile_steps(backend="aot_eager"), checker, LONG)
     x0, plan, *_ = scene()
     x0, plan = x0[:n_envs], plan[:n_envs, :2] * 0.5
-    for got, want in zip(compiled.rollout(x0, plan), checker.rollout(x0, plan)):
+    for got, want in zip(compiled.rollout(x0, plan), eager.rollout(x0, plan)):
         torch.testing.assert_close(got, want, rtol=0, atol=1e-12)
-    centres = checker.rollout(x0, plan)[1]
+    centres = eager.rollout(x0, plan)[1]
     assert bool((brake_policy(centres[:, 1:-1]).abs() < 0.8).any())  # the chain runs, not the open-loop shortcut
-    torch.testing.assert_close(_feedback_jacobian(compiled, centres, 2), _feedback_jacobian(checker, centres, 2),
+    torch.testing.assert_close(_feedback_jacobian(compiled, centres, 2), _feedback_jacobian(eager, centres, 2),
                                rtol=0, atol=1e-12)
+    assert len(_compiled(compiled)) == 2  # the tail and the chain, both compiled
+
+
+def test_short_braking_tails_stay_eager(checker):
+    compiled = _checker_on(copy.deepcopy(checker.reach).compile_steps(backend="aot_eager"), checker, checker.horizon)
+    x0, plan, *_ = scene()
+    torch.testing.assert_close(compiled.rollout(x0, plan)[1], checker.rollout(x0, plan)[1], rtol=0, atol=0)
+    assert not _compiled(compiled)
 
 
 def test_a_failing_compilation_warns_and_runs_eagerly(checker):
+    reach = copy.deepcopy(checker.reach).compile_steps(backend="no_such_backend")
     with pytest.warns(RuntimeWarning, match="compiled _policy_tail failed"):  # at the warm-up
-        compiled = _compiled_checker(checker, backend="no_such_backend")
+        compiled = _checker_on(reach, checker, LONG)
     x0, plan, *_ = scene()
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # warned once, then eager
         got = compiled.rollout(x0, plan)
-    for got_part, want in zip(got, checker.rollout(x0, plan)):
+    for got_part, want in zip(got, _checker_on(checker.reach, checker, LONG).rollout(x0, plan)):
         torch.testing.assert_close(got_part, want, rtol=0, atol=0)

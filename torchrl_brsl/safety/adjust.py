@@ -356,7 +356,7 @@ def _feedback_jacobian(checker: PlanChecker, centers: Tensor, plan_steps: int) -
     if derivative is None or not bool(derivative.any()):
         return open_loop.expand(n_envs, *open_loop.shape)
     closed_loop = reach.state_matrix.to(centers) + reach.input_matrix.to(centers) @ derivative  # [B, n_tail, n, n]
-    (tail,) = checker.run_fused(_chain, closed_loop, open_loop[plan_steps - 1])
+    (tail,) = checker.run_fused(_chain, closed_loop, open_loop[plan_steps - 1], length=n_tail)
     return torch.cat((open_loop[:plan_steps].expand(n_envs, -1, -1, -1), tail), dim=1)
 
 

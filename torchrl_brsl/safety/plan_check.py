@@ -25,6 +25,10 @@ it is exact, else the LP."""
 DEFAULT_STOP_SLACK = 0.15
 """``stop_slack`` when neither it nor ``stop_tolerance`` is given (units of the stop dims, e.g. m/s)."""
 
+FUSE_FROM_STEPS = 16
+"""Braking tails of this many steps or more run compiled with compiled steps (:meth:`PlanChecker.run_fused`): on
+one CPU thread a compiled tail of 6 steps costs what the eager loop does, one of 47 steps a quarter to a half."""
+
 MIN_SET_RADIUS = 1e-6
 """Half-width (state units) of the box added to every plan-dependent set's obstacle-space projection."""
 
@@ -155,7 +159,8 @@ class PlanChecker:
         # a model of a restricted domain: the boxes of R_0 (a point) .. R_{T-1} must stay in it
         self._domain_radius = (torch.cat((errors.new_zeros(1, errors.shape[1]), errors[:-1].abs().sum(-1)))
                                if reach.bounded_domain and not self.plan_dependent else None)
-        if reach.compile_options is not None and failsafe.policy is not None and not self.plan_dependent:
+        if (reach.compile_options is not None and failsafe.policy is not None and not self.plan_dependent
+                and self.horizon - 1 >= FUSE_FROM_STEPS):
             with torch.no_grad():  # compile the one-action plans' braking tail now, not at a control step
                 self.rollout(self.stop_radius.new_zeros(1, reach.state_dim), self.hold(self.stop_radius).view(1, 1, -1))
         vacuous = self.vacuous_stop_dims()
@@ -321,14 +326,16 @@ class PlanChecker:
         A_T, B_T, k = self.memo(("tail map", center.dtype, center.device), lambda: tuple(
             t.to(center) for t in (self.reach.state_matrix.T, self.reach.input_matrix.T, self.reach.offset)))
         return self.run_fused(_policy_tail, center, self.failsafe.policy, A_T, B_T, k, self.action_low.to(center),
-                              self.action_high.to(center), self.action_dtype, steps)
+                              self.action_high.to(center), self.action_dtype, steps, length=steps)
 
-    def run_fused(self, function: Callable, batch: Tensor, *args) -> Any:
-        """``function(batch, *args, fused=...)``: compiled when the model's steps are
-        (:attr:`~torchrl_brsl.reach.DataDrivenReach.compile_options`), with ``fused=True``, else eagerly.
+    def run_fused(self, function: Callable, batch: Tensor, *args, length: int) -> Any:
+        """``function(batch, *args, fused=...)``, a loop of ``length`` steps: compiled when the model's steps
+        are (:attr:`~torchrl_brsl.reach.DataDrivenReach.compile_options`) and the loop has at least
+        :data:`FUSE_FROM_STEPS` steps, with ``fused=True``, else eagerly.
 
         A loop over the braking tail costs a few operations per step eagerly; compiled, it is one
-        graph (one per value of the non-tensor arguments, e.g. the tail's length). ``batch``
+        graph (one per value of the non-tensor arguments, e.g. the tail's length), whose call has a
+        fixed cost of its own (guards, buffers) that shorter loops do not pay back. ``batch``
         ``[B, ...]`` is padded to at least 2 rows and marked dynamic (the compiler specialises sizes
         0 and 1), so every batch size shares the graph; the results' leading dims are ``B``. The
         function is compiled from its own copy of the code, kept in the memo the checker's subsets
@@ -336,7 +343,7 @@ class PlanChecker:
         compilation that fails warns and runs eagerly from then on.
         """
         options = self.reach.compile_options
-        if options is None or self._memo.get(("eager", function)) or not len(batch):
+        if options is None or length < FUSE_FROM_STEPS or self._memo.get(("eager", function)) or not len(batch):
             return function(batch, *args)
         try:
             compiled = self.memo(("compiled", function, repr(sorted(options.items()))), lambda: torch.compile(
