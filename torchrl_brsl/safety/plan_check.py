@@ -26,8 +26,8 @@ DEFAULT_STOP_SLACK = 0.15
 """``stop_slack`` when neither it nor ``stop_tolerance`` is given (units of the stop dims, e.g. m/s)."""
 
 FUSE_FROM_STEPS = 16
-"""Braking tails of this many steps or more run compiled with compiled steps (:meth:`PlanChecker.run_fused`): on
-one CPU thread a compiled tail of 6 steps costs what the eager loop does, one of 47 steps a quarter to a half."""
+"""With compiled steps, braking tails of at least this many steps run as one graph (:meth:`PlanChecker.run_fused`):
+on one CPU thread a compiled tail of 6 steps costs what the eager loop does, one of 47 steps a quarter to a half."""
 
 MIN_SET_RADIUS = 1e-6
 """Half-width (state units) of the box added to every plan-dependent set's obstacle-space projection."""
