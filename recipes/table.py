@@ -10,7 +10,11 @@ reuses its ``eval.csv`` with ``--reuse``, leaving out with a warning the runs th
 yet) and prints, as in the paper, Table I (goal tasks:
 Turtlebot = ``diffdrive_nav``, quadrotor = ``quadrotor_nav``) and Table II (path tasks: point =
 ``point_circle``, ``hexarotor_wind``; other path tasks follow), tasks side by side and the
-methods BRSL, RTS, SAILR, SECAS, Baseline (TD3) as columns. Every cell is the mean ± std over
+methods BRSL, RTS, SAILR, SECAS, Baseline (TD3) as columns, then the ablations. BRSL is the
+paper's: the ensemble world model rolls the policy out into the plan the layer checks (runs
+trained with ``method.name=brsl_ensemble method.planner=ensemble``); the recipe's default (one
+action, then braking: ``method=brsl``) is the ablation "BRSL (one action, then braking)", and
+``learn_from: executed`` (``method.name=brsl_executed``) another. Every cell is the mean ± std over
 seeds (the seed count is a row), compute time the per-step mean ± per-step std averaged over
 seeds; a method without runs on a task shows ``–``. Extra rows: collision steps during training
 (summed over the run, mean ± std over seeds) and interventions. Writes ``fig4.png`` (episode
@@ -33,10 +37,11 @@ import numpy as np
 from recipes.runs import archive_run, finished, load_config, runs_of, seed_curves, training_totals
 from recipes.tasks import task_kind
 
-#: the paper's column order; its names for the columns
-METHODS = ["brsl", "rts", "sailr", "secas", "td3"]
-LABELS = {"brsl": "BRSL", "rts": "RTS", "sailr": "SAILR", "secas": "SECAS", "td3": "Baseline",
-          "brsl_ensemble": "BRSL (ensemble planner)", "brsl_executed": "BRSL (learns executed)"}
+#: the paper's column order (its BRSL: the ensemble world model rolling the policy out into the plan,
+#: ``method.name=brsl_ensemble method.planner=ensemble``); its names for the columns, and the ablations'
+METHODS = ["brsl_ensemble", "rts", "sailr", "secas", "td3"]
+LABELS = {"brsl_ensemble": "BRSL", "rts": "RTS", "sailr": "SAILR", "secas": "SECAS", "td3": "Baseline",
+          "brsl": "BRSL (one action, then braking)", "brsl_executed": "BRSL (learns executed)"}
 #: the paper's tasks per table (others of the same kind follow), with its names for them
 TASKS = {"goal": ["diffdrive_nav", "quadrotor_nav"], "path": ["point_circle", "hexarotor_wind"]}
 TASK_LABELS = {"diffdrive_nav": "Turtlebot", "quadrotor_nav": "Quadrotor", "point_circle": "Point",
@@ -137,14 +142,15 @@ def cell(rows: list[dict] | None, key: str, fmt: str | None) -> str:
 
 
 def columns(results: dict, tasks: list[str]) -> list[str]:
-    """The paper's methods, then any other run directory of these ``tasks`` (an ablation such as ``brsl_ensemble``)."""
+    """The paper's methods, then any other run directory of these ``tasks`` (an ablation such as ``brsl``, the
+    recipe's default: one action, then braking)."""
     found = {m for t in tasks for m in results[t]["methods"]}
     return METHODS + sorted(found - set(METHODS))
 
 
 def tables(results: dict) -> str:
     """Table I and Table II in Markdown, the paper's layout (tasks side by side); ablations (runs under
-    another method directory, e.g. ``method.name=brsl_ensemble``) follow the paper's columns."""
+    another method directory, e.g. ``brsl``, the recipe's default) follow the paper's columns."""
     text = []
     for kind, title in (("goal", "Table I: goal-based experiments"), ("path", "Table II: path following")):
         tasks = [t for t in TASKS[kind] if t in results] + sorted(

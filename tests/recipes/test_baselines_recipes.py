@@ -133,6 +133,7 @@ def test_table_puts_ablation_runs_after_the_papers_columns_with_the_failsafe_sha
     lines = {line.split("|")[1].strip(): [c.strip() for c in line.split("|")[2:-1]]
              for line in goal.splitlines() if line.startswith("| ")}
     assert "BRSL (learns executed)" in path and "executed" not in goal
-    assert lines[""][5] == "Turtlebot: BRSL (ensemble planner)" and len(lines[""]) == 6
-    assert lines["Goal Rate [%]"] == ["50", "–", "–", "–", "–", "70"]
+    assert lines[""][0] == "Turtlebot: BRSL" and len(lines[""]) == 6  # the paper's BRSL: the ensemble planner
+    assert lines[""][5] == "Turtlebot: BRSL (one action, then braking)"
+    assert lines["Goal Rate [%]"] == ["70", "–", "–", "–", "–", "50"]
     assert lines["Failsafe [share of steps]"][0] == "0.05" and lines["Unverified hold [share of steps]"][0] == "0.01"
