@@ -73,7 +73,7 @@ def make_planner(cfg: DictConfig, policy, env) -> Planner | None:
     if cfg.method.planner == "none":
         return None
     if cfg.method.planner != "ensemble":
-        raise ValueError(f"unknown planner {cfg.method.planner!r}; choose 'none' or 'ensemble'")
+        raise ValueError(f"`method.planner` must be 'none' or 'ensemble', got {cfg.method.planner!r}")
     try:
         from torchrl_brsl.models import ProbabilisticEnsemble, WorldModelLoss
         from torchrl_brsl.planning import RolloutPlanner
