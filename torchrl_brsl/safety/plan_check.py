@@ -162,7 +162,8 @@ class PlanChecker:
         if (reach.compile_options is not None and failsafe.policy is not None and not self.plan_dependent
                 and self.horizon - 1 >= FUSE_FROM_STEPS):
             with torch.no_grad():  # compile the one-action plans' braking tail now, not at a control step
-                self.rollout(self.stop_radius.new_zeros(1, reach.state_dim), self.hold(self.stop_radius).view(1, 1, -1))
+                rest = self.action_low.new_zeros(1, reach.state_dim)
+                self.rollout(rest, self.hold(rest).view(1, 1, -1))
         vacuous = self.vacuous_stop_dims()
         if vacuous:
             top, tolerance = self._top_speed(), self._stop_tolerance_at_rest()
