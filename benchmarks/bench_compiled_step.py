@@ -1,11 +1,13 @@
-"""The local model's reachable sets, eager against compiled (``DataDrivenReach.compile_steps``).
+"""The local model's reachable sets: eager, compiled steps, and a plan compiled as one loop.
 
 For each example black box (500 random offline transitions; the body-frame model where the
 system has a heading) and batch size: the time of one plan's sets (``T = 20`` steps, one CPU
-thread) with eager steps and with compiled ones, timed in alternation so that both see the
-same load, their ratio, the first compiled call (compilation; seconds, the on-disk cache
-decides), and how far the compiled sets are from the eager ones (largest centre difference,
-extreme ratios of the interval radii).
+thread, no gradients) three ways, timed in alternation so that all see the same load: eager
+steps; compiled steps called one by one (``step_sets``, what the adjusters' linearisation
+runs); and ``reach`` on the compiled model, which runs the whole plan as one compiled
+``while_loop`` (the checking path). Then the ratios, the warm-up's compile time (seconds, the
+on-disk cache decides), and how far the compiled plan's sets are from the eager ones (largest
+centre difference, extreme ratios of the interval radii).
 
 Usage: ``python benchmarks/bench_compiled_step.py [--quick]``
 """
@@ -32,27 +34,37 @@ def fit(system) -> DataDrivenReach:
                                max_generators=24, body_frame=system.body_frame)
 
 
-def timed(reach: DataDrivenReach, initial: Zonotope, plans: torch.Tensor) -> float:
+def timed(function) -> float:
     start = time.perf_counter()
-    reach.reach(initial, plans)
+    function()
     return (time.perf_counter() - start) * 1e3
 
 
+def stepwise(reach: DataDrivenReach, initial: Zonotope, plans: torch.Tensor) -> None:
+    center, generators = initial.center, initial.generators
+    for action in plans.unbind(-2):
+        center, generators, _ = reach.step_sets(center, generators, action)
+
+
 def compare(system, batch: int, repeats: int) -> dict[str, float]:
-    eager, compiled = fit(system), fit(system).compile_steps()
+    eager, compiled = fit(system), fit(system)
+    start = time.perf_counter()
+    compiled.compile_steps()
+    first = time.perf_counter() - start
     gen = torch.Generator().manual_seed(batch)
     initial = Zonotope.from_point(system.sample_states(batch, gen) * 0.5)
     plans = system.sample_actions(batch, HORIZON, generator=gen)
-    first = timed(compiled, initial, plans) / 1e3
-    eager_ms, compiled_ms = [], []
-    for _ in range(repeats):  # alternate, so that both see the same load
-        eager_ms.append(timed(eager, initial, plans))
-        compiled_ms.append(timed(compiled, initial, plans))
-    a, b = eager.reach(initial, plans), compiled.reach(initial, plans)
+    runs = {"eager": lambda: eager.reach(initial, plans), "steps": lambda: stepwise(compiled, initial, plans),
+            "loop": lambda: compiled.reach(initial, plans)}
+    times = {name: [] for name in runs}
+    with torch.no_grad():
+        for _ in range(repeats):  # alternate, so that all see the same load
+            for name, run in runs.items():
+                times[name].append(timed(run))
+        a, b = eager.reach(initial, plans), compiled.reach(initial, plans)
     ratio = b.generators.abs().sum(-1) / a.generators.abs().sum(-1).clamp_min(1e-300)
-    return {"eager": statistics.median(eager_ms) / batch, "compiled": statistics.median(compiled_ms) / batch,
-            "first": first, "center": float((a.center - b.center).abs().max()),
-            "low": float(ratio.min()), "high": float(ratio.max())}
+    return {**{name: statistics.median(t) / batch for name, t in times.items()}, "first": first,
+            "center": float((a.center - b.center).abs().max()), "low": float(ratio.min()), "high": float(ratio.max())}
 
 
 def main() -> None:
@@ -61,15 +73,15 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
     batches, repeats = ((1, 16), 5) if args.quick else ((1, 4, 16, 64), 20)
-    print(f"one plan's sets (T = {HORIZON}), one CPU thread, median ms per plan; eager and compiled alternated")
-    print(f"{'system':<20}{'batch':>6}{'eager':>10}{'compiled':>10}{'ratio':>8}{'compile s':>11}"
-          f"{'|Δ centre|':>12}{'radius ratio':>18}")
+    print(f"one plan's sets (T = {HORIZON}), one CPU thread, no gradients, median ms per plan; the three alternated")
+    print(f"{'system':<20}{'batch':>6}{'eager':>9}{'steps':>9}{'loop':>9}{'eager/loop':>12}{'steps/loop':>12}"
+          f"{'compile s':>11}{'|Δ centre|':>12}{'radius ratio':>18}")
     for name, system_type in SYSTEMS.items():
         for batch in batches:
             row = compare(system_type(), batch, repeats)
-            print(f"{name:<20}{batch:>6}{row['eager']:>10.3f}{row['compiled']:>10.3f}"
-                  f"{row['eager'] / row['compiled']:>7.1f}x{row['first']:>11.1f}{row['center']:>12.1e}"
-                  f"{row['low']:>9.4f}-{row['high']:.4f}", flush=True)
+            print(f"{name:<20}{batch:>6}{row['eager']:>9.3f}{row['steps']:>9.3f}{row['loop']:>9.3f}"
+                  f"{row['eager'] / row['loop']:>11.1f}x{row['steps'] / row['loop']:>11.1f}x{row['first']:>11.1f}"
+                  f"{row['center']:>12.1e}{row['low']:>9.4f}-{row['high']:.4f}", flush=True)
     print("target (issue): one plan's sets <= 0.3 ms")
 
 

@@ -1,6 +1,7 @@
 """The compiled step of the local model (``DataDrivenReach.compile_steps``): the eager sets, sound, and
 never a crash when the compiler fails. Most tests trace with the ``aot_eager`` backend (the same
 capture, guards and symbolic shapes, no code generation); one runs the default backend."""
+import re
 import shutil
 
 import pytest
@@ -58,7 +59,8 @@ def test_compiled_steps_give_the_eager_sets_and_the_sampling_has_teeth(bicycle):
         assert sampled(system, model).violations > 0
     finally:
         model.cell_errors.copy_(errors)
-    assert _step_of(model)._compiled is not None  # the compiled path ran throughout: no fallback
+    assert _step_of(model)._compiled is not None  # the compiled paths ran throughout: no fallback
+    assert _step_of(model)._compiled_loop is not None
 
 
 def test_compiled_tangents_and_gradients_are_the_eager_ones(bicycle):
@@ -104,6 +106,7 @@ def test_the_default_backend_gives_sound_eager_sets_without_recompiling(bicycle)
     result = sampled(system, model)
     assert result.violations == 0 and result.checked > 10_000
     assert _step_of(model)._compiled is not None  # no fallback: the generated code was checked
+    assert _step_of(model)._compiled_loop is not None
 
 
 def test_a_failing_compiler_falls_back_to_eager_steps_with_a_warning(bicycle, monkeypatch):
@@ -116,10 +119,14 @@ def test_a_failing_compiler_falls_back_to_eager_steps_with_a_warning(bicycle, mo
     x0, plans, _ = random_plans(system, n_plans=3, horizon=5)
     eager = _sets(model.compile_steps(False), x0, plans)
     monkeypatch.setattr(torch, "compile", compile_that_fails)
-    with pytest.warns(RuntimeWarning, match="compiled reachable-set step failed .*no C.. compiler.*eagerly"):
-        model.compile_steps()  # the warm-up meets the failure
+    with pytest.warns(RuntimeWarning) as record:
+        model.compile_steps()  # the warm-up meets the failure, on the step and on the plan's loop
+    messages = sorted(str(w.message) for w in record)
+    assert len(messages) == 2
+    assert re.match("the compiled reachable sets of a plan failed .*no C.. compiler.*eagerly", messages[0])
+    assert re.match("the compiled reachable-set step failed .*no C.. compiler.*eagerly", messages[1])
     _assert_same(_sets(model, x0, plans), eager)
-    assert _step_of(model)._compiled is None
+    assert _step_of(model)._compiled is None and _step_of(model)._compiled_loop is None
 
 
 def test_compiling_needs_a_fixed_generator_width(bicycle):

@@ -2,7 +2,7 @@
 from torchrl_brsl.reach.body_frame import BodyFrame
 from torchrl_brsl.reach.cells import (Cells, LeafLayout, fit_cells, input_relevance, leaf_bounds, leaf_distance,
                                       leaf_layout, split_directions, tree_nodes)
-from torchrl_brsl.reach.data_driven import METHODS, DataDrivenReach, stack_steps
+from torchrl_brsl.reach.data_driven import METHODS, DataDrivenReach
 from torchrl_brsl.reach.evaluation import SampledReach, env_trajectories, points_outside, sample_reach
 from torchrl_brsl.reach.examples import (BlackBoxSystem, CappedVelocityServo, DoubleIntegrator, KinematicBicycle,
                                         SaturatedThrustPoint, Unicycle)
@@ -10,6 +10,7 @@ from torchrl_brsl.reach.hinges import (Features, feature_values, fit_features, f
                                       product_features, product_relaxation, prune_hinges, refine_hinges,
                                       relu_relaxation)
 from torchrl_brsl.reach.lipschitz import covering_radius, residual_lipschitz
+from torchrl_brsl.reach.local_step import stack_steps
 from torchrl_brsl.reach.offline import collect_offline_data, load_offline_data, save_offline_data
 
 __all__ = ["METHODS", "BlackBoxSystem", "BodyFrame", "CappedVelocityServo", "Cells", "DataDrivenReach",

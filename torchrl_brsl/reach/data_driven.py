@@ -154,8 +154,9 @@ class DataDrivenReach(nn.Module):
         if lipschitz_margin < 1:
             raise ValueError(f"`lipschitz_margin` must be >= 1, got {lipschitz_margin}")
         fixed = sorted({int(d) % n for d in translation_invariant_dims})
-        if len(fixed) != len(tuple(translation_invariant_dims)) or any(not -n <= d < n for d in translation_invariant_dims):
-            raise ValueError(f"`translation_invariant_dims`={tuple(translation_invariant_dims)} must be distinct state indices < {n}")
+        dims = tuple(translation_invariant_dims)
+        if len(fixed) != len(dims) or any(not -n <= d < n for d in dims):
+            raise ValueError(f"`translation_invariant_dims`={dims} must be distinct state indices < {n}")
         if body_frame is not None:
             body_frame.check(n, tuple(fixed))
         heading = () if body_frame is None else body_frame.heading_dims
@@ -375,14 +376,7 @@ class DataDrivenReach(nn.Module):
         batch = torch.broadcast_shapes(initial.batch_size, actions.shape[:-2])
         center = initial.center.to(dtype).expand(*batch, self.state_dim)
         generators = initial.generators.to(dtype).expand(*batch, *initial.generators.shape[-2:])
-        covered = torch.ones(batch, dtype=torch.bool, device=center.device)
-        centers, sets = [], []
-        for action in actions.expand(*batch, *actions.shape[-2:]).unbind(-2):
-            center, generators, inside = self.step_sets(center, generators, action)
-            covered = covered & inside
-            centers.append(center)
-            sets.append(generators)
-        return stack_steps(centers, sets), covered
+        return self._local_step().plan_sets(center, generators, actions)
 
     def step_sets(self, center: Tensor, generators: Tensor, action: Tensor,
                   tangents: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, ...]:
@@ -393,17 +387,22 @@ class DataDrivenReach(nn.Module):
             ``(center [..., n], generators [..., n, p'], covered [...])`` of ``R_{j+1}``
             (generators reduced to ``max_generators`` when set), and the mapped tangents if given.
         """
+        return self._local_step()(center, generators, action, tangents)
+
+    def _local_step(self) -> LocalStep:
+        """The local model's step, built once (and again after :meth:`compile_steps` or ``.to()``)."""
         if ("step",) not in self._cache:
             self._cache[("step",)] = LocalStep(self, *(self._compile or ()))
-        return self._cache[("step",)](center, generators, action, tangents)
+        return self._cache[("step",)]
 
     def compile_steps(self, enabled: bool = True, warm_up: bool = True, **compile_kwargs) -> DataDrivenReach:
         """Run the local model's steps (:meth:`step_sets`) through :func:`torch.compile`; returns ``self``.
 
-        The same operations, fused: 2-5x less time per step at batch 1 to 16 on a CPU, less at 64
-        (``benchmarks/bench_compiled_step.py``), and the same sets up to rounding. Compiling a
-        graph takes about a minute with an empty cache, seconds once the on-disk cache holds it.
-        ``warm_up`` compiles the checking and the adjusters' linearisation graphs here, on two
+        The same operations, fused, and the same sets up to rounding: a plan's sets without
+        gradients (checking) run as one compiled loop, 10-15x faster than eager at batch 1; single
+        steps (the adjusters' linearisation and gradients) 2-5x (``benchmarks/bench_compiled_step.py``).
+        Compiling a graph takes under a minute with an empty cache, seconds once the on-disk cache
+        holds it. ``warm_up`` compiles the checking and the linearisation graphs here, on two
         offline states, so that no control step stalls on it (the graphs of gradients through the
         steps, for the gradient adjuster, compile on first use). A global model's steps are one
         affine map and stay eager: it records the choice for the rollout of a braking policy's tail
@@ -429,7 +428,7 @@ class DataDrivenReach(nn.Module):
                              "matrices keeps one compiled graph); fit the model with `max_generators=...`")
         if enabled and self._compile is not None and self._compile[0] == compile_kwargs:
             return self  # already compiled so: keep the graphs
-        functions = (LocalStep.step_function(), LocalStep.step_function()) if enabled else None
+        functions = LocalStep.compiled_functions() if enabled else None
         self._compile = (dict(compile_kwargs), functions) if enabled else None
         self._cache.pop(("step",), None)
         if enabled and warm_up and self.plan_dependent:
@@ -439,6 +438,7 @@ class DataDrivenReach(nn.Module):
             with torch.no_grad():
                 self.step_sets(center, generators, action)
                 self.step_sets(center, generators, action, tangents)
+                self._local_step().plan_sets(center, generators, action.unsqueeze(-2).expand(-1, 2, -1))
         return self
 
     @property
@@ -620,14 +620,6 @@ class DataDrivenReach(nn.Module):
                 drift[j] = sum(powers[i] @ k for i in range(j + 1))
             self._cache[key] = (torch.stack(powers[1:]), transfer.reshape(horizon * n, horizon * m), drift)
         return self._cache[key]
-
-
-def stack_steps(centers: Sequence[Tensor], generators: Sequence[Tensor]) -> Zonotope:
-    """The sets of successive steps, ``[..., n]`` centres and ``[..., n, p_j]`` generators each,
-    as one :class:`Zonotope` of batch ``[..., H]`` (generators zero-padded to the widest)."""
-    width = max(g.shape[-1] for g in generators)
-    with skip_value_checks():  # built from the validated model
-        return Zonotope(torch.stack(list(centers), -2), torch.stack([pad_generators(g, width) for g in generators], -3))
 
 
 def _local_params(cells: Cells, scale: Tensor, free: list[int], select: Tensor, noise_center: Tensor) -> dict:
