@@ -11,11 +11,13 @@ and speed), for ``B`` = 1, 4, 16, 64, in two regimes:
 
 Every batch holds the first ``B`` of the same 64 robots; ``B = 1`` is the mean over the first 8, one
 at a time (a single robot's work depends on its heading and speed: one wall ahead is adjusted,
-another passes at once). Printed per model (global fit, body-frame local model, the same with
-compiled steps): the median time of one call, its ratio to one env, the time per env, and the
+another passes at once). Printed per model (global fit, body-frame local model, the same compiled:
+``body-compiled`` runs a plan's sets as one compiled loop, ``body-steps`` as compiled steps one by
+one): the median time of one call, its ratio to one env, the time per env, and the
 share of envs in the failsafe at ``B = 64``. The goal is 64 envs in at most 4x the time of one.
 
-Usage: ``python benchmarks/bench_layer_batch.py [--quick] [--device cpu|cuda] [--models global,body,body-compiled]``
+Usage: ``python benchmarks/bench_layer_batch.py [--quick] [--device cpu|cuda]
+[--models global,body,body-compiled,body-steps]``
 """
 from __future__ import annotations
 
@@ -81,7 +83,8 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="fewer calls (a smoke run)")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--models", default="global,body",
-                        help="comma-separated: global, body, body-compiled (DataDrivenReach.compile_steps)")
+                        help="comma-separated: global, body, body-compiled, body-steps (DataDrivenReach.compile_steps,"
+                             " with loop=False)")
     args = parser.parse_args()
     torch.set_num_threads(1)
     torch.manual_seed(0)
@@ -98,8 +101,8 @@ def main() -> None:
         reach = DataDrivenReach.from_data(data, noise, translation_invariant_dims=info.position_dims,
                                           max_generators=30, method="global" if model == "global" else "local",
                                           body_frame=frame)
-        if model.endswith("compiled"):
-            reach.compile_steps()  # the first calls of each layer (untimed) compile
+        if model in ("body-compiled", "body-steps"):
+            reach.compile_steps(loop=model == "body-compiled")
         for regime, towards_wall, adjuster in (("safe proposals", False, None), ("adjusting", True, "facet_qp")):
             runs = [median_ms(make_layer(reach, info, adjuster, device),
                               batch_inputs(info, slice(0, b), towards_wall, device), calls) for b in BATCHES]

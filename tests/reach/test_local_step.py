@@ -68,16 +68,29 @@ def test_compiled_tangents_and_gradients_are_the_eager_ones(bicycle):
     x0, plans, _ = random_plans(system, n_plans=4, horizon=6)
     generators = x0.new_zeros(4, x0.shape[-1], 0)
     tangents = (torch.randn(4, x0.shape[-1], 3, dtype=x0.dtype), torch.randn(4, 2, 3, dtype=x0.dtype))
+    plan_tangents = (tangents[0], torch.randn(4, 6, 2, 3, dtype=x0.dtype))  # every action's directions
     results = []
     for kwargs in (None, dict(backend="aot_eager")):
         model.compile_steps(**kwargs) if kwargs else model.compile_steps(False)
         moved = model.step_sets(x0, generators, plans[:, 0], tangents)[-1]
+        along_plan = model.reach_covered(Zonotope.from_point(x0), plans, plan_tangents)[-1]  # [4, 6, n, 3]
         start, plan = x0.clone().requires_grad_(True), plans.clone().requires_grad_(True)
         model.reach(Zonotope.from_point(start), plan).center.sum().backward()
-        results.append((moved, start.grad, plan.grad))
+        results.append((moved, along_plan, start.grad, plan.grad))
     for compiled, eager in zip(results[1], results[0]):
         torch.testing.assert_close(compiled, eager, rtol=1e-9, atol=1e-12)
-    assert _step_of(model)._compiled is not None
+    assert _step_of(model)._compiled is not None and _step_of(model)._compiled_loop is not None
+    # the plan's tangents are the steps' chained: the first step's are those of the single step
+    torch.testing.assert_close(results[0][1][:, 0], model.step_sets(
+        x0, generators, plans[:, 0], (tangents[0], plan_tangents[1][:, 0]))[-1], rtol=1e-12, atol=1e-14)
+
+
+def test_tangents_need_a_local_model(bicycle):
+    system, _ = bicycle
+    x0, plans, _ = random_plans(system, n_plans=2, horizon=3)
+    model = fit(system, 200, method="global")
+    with pytest.raises(ValueError, match="tangents.*local model"):
+        model.reach_covered(Zonotope.from_point(x0), plans, (x0.new_zeros(2, x0.shape[-1], 1), plans.unsqueeze(-1)))
 
 
 def _default_backend_error() -> str | None:
@@ -98,10 +111,14 @@ def test_the_default_backend_gives_sound_eager_sets_without_recompiling(bicycle)
         pytest.skip(f"the default compiler backend does not work on this machine ({reason})")
     system, model = bicycle
     x0, plans, _ = random_plans(system, n_plans=8, horizon=10)
+    tangents = (torch.randn(8, x0.shape[-1], 4, dtype=x0.dtype), torch.randn(8, 10, 2, 4, dtype=x0.dtype))
     eager = _sets(model.compile_steps(False), x0, plans)
+    eager_tangents = model.reach_covered(Zonotope.from_point(x0), plans, tangents)[-1]
     model.compile_steps()  # warmed up on views of the offline data
     compiled_frames = counters["frames"]["ok"]
     _assert_same(_sets(model, x0.clone(), plans.clone()), eager)  # inputs that are not views
+    compiled_tangents = model.reach_covered(Zonotope.from_point(x0), plans, tangents)[-1]
+    torch.testing.assert_close(compiled_tangents, eager_tangents, rtol=1e-9, atol=1e-12)
     assert counters["frames"]["ok"] == compiled_frames  # no recompilation
     result = sampled(system, model)
     assert result.violations == 0 and result.checked > 10_000
@@ -137,3 +154,14 @@ def test_compiling_needs_a_fixed_generator_width(bicycle):
             model.compile_steps()
     finally:
         model.max_generators = width
+
+
+def test_without_the_loop_plans_run_as_compiled_steps(bicycle):
+    system, model = bicycle
+    x0, plans, _ = random_plans(system, n_plans=3, horizon=5)
+    eager = _sets(model.compile_steps(False), x0, plans)
+    model.compile_steps(backend="aot_eager", loop=False)
+    assert _step_of(model)._compiled is not None and _step_of(model)._compiled_loop is None
+    _assert_same(_sets(model, x0, plans), eager)
+    model.compile_steps(backend="aot_eager")  # the same arguments but the loop: rebuilt with it
+    assert _step_of(model)._compiled_loop is not None

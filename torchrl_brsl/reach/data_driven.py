@@ -90,7 +90,7 @@ class DataDrivenReach(nn.Module):
         self.body_frame = body_frame
         self.covering_radius = float(covering_radius)
         self.max_generators = max_generators
-        self._compile: tuple[dict, tuple] | None = None  # torch.compile's arguments, the step's code copies
+        self._compile: tuple[dict, tuple, bool] | None = None  # torch.compile's arguments, code copies, loop
         self._cache: dict = {}
 
     # ----------------------------------------------------------------- fitting
@@ -354,7 +354,8 @@ class DataDrivenReach(nn.Module):
             raise ValueError(f"`actions` must end in {self.action_dim} (the action dim), got {tuple(actions.shape)}")
         return actions
 
-    def reach_covered(self, initial: Zonotope, actions: Tensor) -> tuple[Zonotope, Tensor]:
+    def reach_covered(self, initial: Zonotope, actions: Tensor,
+                      tangents: tuple[Tensor, Tensor] | None = None) -> tuple[Zonotope, Tensor] | tuple[Zonotope, ...]:
         """:meth:`reach` and whether every step lies in the region the data cover.
 
         For ``method="local"`` each step ``R_j -> R_{j+1}`` is :meth:`step_sets`; a step whose
@@ -364,10 +365,19 @@ class DataDrivenReach(nn.Module):
         ``out_of_data``). The global model covers everything (its claims rest on
         :meth:`data_distance`).
 
+        Args:
+            tangents: a local model only: ``(dc [..., n, k], du [..., H, m, k])``, directions of the
+                initial centre and the actions, mapped to the centres' directions to first order with
+                each step's leaf models and relaxations held fixed (a linearisation for the adjusters).
+
         Returns:
-            ``(sets [..., H], covered [...])``.
+            ``(sets [..., H], covered [...])``, and with ``tangents`` the centres' directions
+            ``[..., H, n, k]``.
         """
         actions = self._check_reach_args(initial, actions)
+        if tangents is not None and not self.plan_dependent:
+            raise ValueError("`tangents` need a local model (method='local'); a global model's centres are affine "
+                             "in the plan (see `reach_centers`)")
         if not self.plan_dependent:
             sets = self.reach(initial, actions)
             return sets, torch.ones(sets.batch_size[:-1], dtype=torch.bool, device=sets.center.device)
@@ -376,7 +386,7 @@ class DataDrivenReach(nn.Module):
         batch = torch.broadcast_shapes(initial.batch_size, actions.shape[:-2])
         center = initial.center.to(dtype).expand(*batch, self.state_dim)
         generators = initial.generators.to(dtype).expand(*batch, *initial.generators.shape[-2:])
-        return self._local_step().plan_sets(center, generators, actions)
+        return self._local_step().plan_sets(center, generators, actions, tangents)
 
     def step_sets(self, center: Tensor, generators: Tensor, action: Tensor,
                   tangents: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, ...]:
@@ -392,10 +402,11 @@ class DataDrivenReach(nn.Module):
     def _local_step(self) -> LocalStep:
         """The local model's step, built once (and again after :meth:`compile_steps` or ``.to()``)."""
         if ("step",) not in self._cache:
-            self._cache[("step",)] = LocalStep(self, *(self._compile or ()))
+            self._cache[("step",)] = LocalStep(self, *(self._compile[:2] if self._compile else ()))
         return self._cache[("step",)]
 
-    def compile_steps(self, enabled: bool = True, warm_up: bool = True, **compile_kwargs) -> DataDrivenReach:
+    def compile_steps(self, enabled: bool = True, warm_up: bool = True, loop: bool = True,
+                      **compile_kwargs) -> DataDrivenReach:
         """Run the local model's steps (:meth:`step_sets`) through :func:`torch.compile`; returns ``self``.
 
         The same operations, fused, and the same sets up to rounding: a plan's sets without
@@ -413,6 +424,8 @@ class DataDrivenReach(nn.Module):
         Args:
             enabled: ``False`` returns to eager steps.
             warm_up: compile now rather than at the first steps.
+            loop: a plan's sets without gradients run as one compiled loop; ``False``: as compiled
+                steps called one by one (a smaller graph to compile; for comparison).
             **compile_kwargs: passed to :func:`torch.compile` (e.g. ``backend="aot_eager"``).
 
         Raises:
@@ -426,10 +439,10 @@ class DataDrivenReach(nn.Module):
         if enabled and self.plan_dependent and self.max_generators is None:
             raise ValueError("`compile_steps` needs `max_generators` (a fixed width of the sets' generator "
                              "matrices keeps one compiled graph); fit the model with `max_generators=...`")
-        if enabled and self._compile is not None and self._compile[0] == compile_kwargs:
+        if enabled and self._compile is not None and self._compile[::2] == (compile_kwargs, loop):
             return self  # already compiled so: keep the graphs
-        functions = LocalStep.compiled_functions() if enabled else None
-        self._compile = (dict(compile_kwargs), functions) if enabled else None
+        functions = LocalStep.compiled_functions(loop) if enabled else None
+        self._compile = (dict(compile_kwargs), functions, loop) if enabled else None
         self._cache.pop(("step",), None)
         if enabled and warm_up and self.plan_dependent:
             center, action = self.x_minus[:2], self.u_minus[:2]
@@ -438,7 +451,10 @@ class DataDrivenReach(nn.Module):
             with torch.no_grad():
                 self.step_sets(center, generators, action)
                 self.step_sets(center, generators, action, tangents)
-                self._local_step().plan_sets(center, generators, action.unsqueeze(-2).expand(-1, 2, -1))
+                plan = action.unsqueeze(-2).expand(-1, 2, -1)
+                plan_tangents = tangents[1].unsqueeze(-3).expand(-1, 2, -1, -1)
+                self._local_step().plan_sets(center, generators, plan)
+                self._local_step().plan_sets(center, generators, plan, (tangents[0], plan_tangents))
         return self
 
     @property

@@ -81,22 +81,26 @@ class LocalStep:
         self._noise(model)
         if self.body_frame is not None:
             self._rotation_tables(model)
-        # per use: steps without tangents (gradients), with them (linearisation), and whole plans (checking)
+        # per use: steps and whole plans (checking), each without tangents and with them (linearisation)
         self._compiled = self._compiled_loop = None
         if compile_kwargs is not None:
-            step, tangent_step, loop = step_functions or LocalStep.compiled_functions()
+            step, tangent_step, loop, tangent_loop = step_functions or LocalStep.compiled_functions()
             self._compiled = tuple(torch.compile(types.MethodType(f, self), **compile_kwargs)
                                    for f in (step, tangent_step))
-            self._compiled_loop = torch.compile(types.MethodType(loop, self), **_loop_options(compile_kwargs))
+            if loop is not None:
+                self._compiled_loop = tuple(torch.compile(types.MethodType(f, self), **_loop_options(compile_kwargs))
+                                            for f in (loop, tangent_loop))
 
     @staticmethod
-    def compiled_functions() -> tuple:
-        """Copies of :meth:`_step` (twice: without and with tangents) and of :meth:`_loop`, each with a code
+    def compiled_functions(loop: bool = True) -> tuple:
+        """Copies of :meth:`_step` and of :meth:`_loop` (each twice: without and with tangents), each with a code
         object of its own, for a model to compile: the compiler keys its graphs (and its limit on
         recompilations) by code object, so copies per model and use keep that model's graphs when its
-        step is rebuilt (after ``.to()``), never evict another model's, and keep each use's guards apart."""
-        return tuple(types.FunctionType(f.__code__.replace(), f.__globals__, f.__name__, f.__defaults__, f.__closure__)
-                     for f in (LocalStep._step, LocalStep._step, LocalStep._loop))
+        step is rebuilt (after ``.to()``), never evict another model's, and keep each use's guards apart.
+        Without ``loop``, ``None`` for the loop's copies (plans run as compiled steps)."""
+        steps = tuple(types.FunctionType(f.__code__.replace(), f.__globals__, f.__name__, f.__defaults__, f.__closure__)
+                      for f in (LocalStep._step, LocalStep._step, LocalStep._loop, LocalStep._loop))
+        return steps if loop else steps[:2] + (None, None)
 
     def _noise(self, model) -> None:
         """The noise's columns: a box adds its radii to the error's diagonal, else its generators follow."""
@@ -141,7 +145,8 @@ class LocalStep:
                 self._compiled = None
         return self._step(center, generators, action, tangents)
 
-    def plan_sets(self, center: Tensor, generators: Tensor, actions: Tensor) -> tuple[Zonotope, Tensor]:
+    def plan_sets(self, center: Tensor, generators: Tensor, actions: Tensor,
+                  tangents: tuple[Tensor, Tensor] | None = None) -> tuple:
         """The sets of whole plans: the steps under ``actions`` ``[..., T, m]`` from ``Z(center [..., n],
         generators [..., n, p])``.
 
@@ -149,62 +154,101 @@ class LocalStep:
         about 3x faster than compiled steps and 8x faster than eager ones at batch 1
         (``benchmarks/bench_compiled_step.py``). Otherwise step by step.
 
+        Args:
+            tangents: optional ``(dc [..., n, k], du [..., T, m, k])``: directions of the initial centre
+                and of every action, mapped along the plan as :meth:`__call__` maps them.
+
         Returns:
-            ``(sets [..., T], covered [...])``: ``covered`` if every step is.
+            ``(sets [..., T], covered [...])``: ``covered`` if every step is; with ``tangents``, also
+            the centres' directions ``[..., T, n, k]``.
         """
         batch = torch.broadcast_shapes(center.shape[:-1], generators.shape[:-2], actions.shape[:-2])
-        differentiable = torch.is_grad_enabled() and any(t.requires_grad for t in (center, generators, actions))
-        if self._compiled_loop is not None and actions.shape[-2] >= 2 and batch.numel() > 0 and not differentiable:
+        inputs = (center, generators, actions, *(tangents or ()))
+        differentiable = torch.is_grad_enabled() and any(t.requires_grad for t in inputs)
+        loop = self._compiled_loop[tangents is not None] if self._compiled_loop is not None else None
+        if loop is not None and actions.shape[-2] >= 2 and batch.numel() > 0 and not differentiable:
             try:
-                return self._run_compiled_loop(batch, center, generators, actions)
+                return self._run_compiled_loop(loop, batch, center, generators, actions, tangents)
             except Exception as error:  # the compiler's failure must not stop a control loop
                 _warn_eager("the compiled reachable sets of a plan", error)
                 self._compiled_loop = None
         covered = torch.ones(batch, dtype=torch.bool, device=center.device)
-        centers, sets = [], []
-        for action in actions.expand(*batch, *actions.shape[-2:]).unbind(-2):
-            center, generators, inside = self(center, generators, action)
+        centers, sets, moved = [], [], []
+        tangent, du = tangents if tangents is not None else (None, None)
+        for j, action in enumerate(actions.expand(*batch, *actions.shape[-2:]).unbind(-2)):
+            if tangents is None:
+                center, generators, inside = self(center, generators, action)
+            else:
+                center, generators, inside, tangent = self(center, generators, action, (tangent, du[..., j, :, :]))
+                moved.append(tangent)
             covered = covered & inside
             centers.append(center)
             sets.append(generators)
-        return stack_steps(centers, sets), covered
+        result = (stack_steps(centers, sets), covered)
+        return result if tangents is None else (*result, torch.stack(moved, -3))
 
-    def _run_compiled_loop(self, batch: torch.Size, center: Tensor, generators: Tensor,
-                           actions: Tensor) -> tuple[Zonotope, Tensor]:
-        """:meth:`plan_sets` through the compiled :meth:`_loop`, its inputs as :meth:`_compiled_inputs` makes them
-        and the plan's length dynamic (one graph for every length from 2)."""
-        count, n, horizon = batch.numel(), self.state_dim, actions.shape[-2]
-        center, generators, actions, _ = self._compiled_inputs(batch, center, generators, actions, None, action_dims=2)
-        actions = actions.transpose(0, 1).contiguous()  # [T, B, m]
-        torch._dynamo.mark_dynamic(actions, 0)
-        torch._dynamo.mark_dynamic(actions, 1)
+    def _run_compiled_loop(self, loop, batch: torch.Size, center: Tensor, generators: Tensor, actions: Tensor,
+                           tangents: tuple[Tensor, Tensor] | None) -> tuple:
+        """:meth:`plan_sets` through the compiled :meth:`_loop`, its inputs as :meth:`_compiled_inputs` makes them,
+        steps first, and the plan's length (and the tangents' count) dynamic: one graph for every length
+        from 2."""
+        count, n, horizon, width = batch.numel(), self.state_dim, actions.shape[-2], self.max_generators
+        if tangents is not None:  # the action tangents travel with the actions: [..., T, m (1 + k)]
+            du = tangents[1].expand(*batch, *tangents[1].shape[-3:])
+            actions = torch.cat((actions.expand(*batch, *actions.shape[-2:]).unsqueeze(-1), du), dim=-1).flatten(-2)
+        center, generators, actions, dc = self._compiled_inputs(
+            batch, center, generators, actions, None if tangents is None else (tangents[0],), action_dims=2)
+        actions = actions.transpose(0, 1).contiguous()  # [T, B, m] or [T, B, m (1 + k)]
+        for dim in (0, 1):
+            torch._dynamo.mark_dynamic(actions, dim)
+        if tangents is not None:
+            dc, k = dc[0], tangents[0].shape[-1]
+            if k >= 2:
+                torch._dynamo.mark_dynamic(dc, 2)
+                torch._dynamo.mark_dynamic(actions, 2)
         with torch.no_grad():
-            centers, sets, covered = self._compiled_loop(center, generators, actions)
-        centers = centers[:, :count].transpose(0, 1).reshape(*batch, horizon, n)
-        sets = sets[:, :count].transpose(0, 1).reshape(*batch, horizon, n, self.max_generators)
+            out = loop(center, generators, actions) if tangents is None else loop(center, generators, actions, dc)
+        steps_first = ((n,), (n, width), (n, -1))
+        centers, sets, *moved = (t[:, :count].transpose(0, 1).reshape(*batch, horizon, *shape)
+                                 for t, shape in zip(out[:1] + out[1:2] + out[3:], steps_first))
         with skip_value_checks():  # finite by construction
-            return Zonotope(centers, sets), covered[:count].reshape(batch)
+            result = (Zonotope(centers, sets), out[2][:count].reshape(batch))
+        return result + tuple(moved)
 
-    def _loop(self, center: Tensor, generators: Tensor, actions: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    def _loop(self, center: Tensor, generators: Tensor, actions: Tensor,
+              tangent: Tensor | None = None) -> tuple[Tensor, ...]:
         """:meth:`_step` over a plan as one ``while_loop``, traced as one graph when compiled: ``center [B, n]``,
         ``generators [B, n, max_generators]``, ``actions [T, B, m]`` to ``(centers [T, B, n], generators
-        [T, B, n, max_generators], covered [B])``. The body has no side effects and keeps its carry's
-        shapes (the step reduces to ``max_generators`` columns)."""
+        [T, B, n, max_generators], covered [B])``. With ``tangent`` ``[B, n, k]`` (the initial centre's
+        directions), ``actions`` is ``[T, B, m (1 + k)]``, each action followed by its directions, and
+        the centres' directions ``[T, B, n, k]`` come last. The body has no side effects and keeps its
+        carry's shapes (the step reduces to ``max_generators`` columns)."""
+        horizon, m = actions.shape[0], self.widths[1]
+
         def more(i: Tensor, *_) -> Tensor:
-            return i < actions.shape[0]
+            return i < horizon
 
-        def step(i: Tensor, center: Tensor, generators: Tensor, covered: Tensor, centers: Tensor, sets: Tensor):
+        def step(i: Tensor, center: Tensor, generators: Tensor, covered: Tensor, centers: Tensor, sets: Tensor,
+                 *moved: Tensor):
             at = i.reshape(1)
-            center, generators, inside = self._step(center, generators, actions.index_select(0, at).squeeze(0), None)
+            action = actions.index_select(0, at).squeeze(0)
+            if tangent is None:
+                center, generators, inside = self._step(center, generators, action, None)
+            else:
+                action = action.unflatten(-1, (m, -1))
+                center, generators, inside, direction = self._step(center, generators, action[..., 0],
+                                                                   (moved[0], action[..., 1:]))
+                moved = (direction, moved[1].index_copy(0, at, direction.unsqueeze(0)))
             return (i + 1, center, generators, covered & inside, centers.index_copy(0, at, center.unsqueeze(0)),
-                    sets.index_copy(0, at, generators.unsqueeze(0)))
+                    sets.index_copy(0, at, generators.unsqueeze(0)), *moved)
 
-        horizon = actions.shape[0]
         start = (torch.zeros((), dtype=torch.long, device=center.device), center, generators,
                  torch.ones(center.shape[0], dtype=torch.bool, device=center.device),
                  center.new_zeros(horizon, *center.shape), generators.new_zeros(horizon, *generators.shape))
-        _, _, _, covered, centers, sets = while_loop(more, step, start)
-        return centers, sets, covered
+        if tangent is not None:
+            start += (tangent, tangent.new_zeros(horizon, *tangent.shape))
+        _, _, _, covered, centers, sets, *moved = while_loop(more, step, start)
+        return (centers, sets, covered, *moved[1:])
 
     def _run_compiled(self, center: Tensor, generators: Tensor, action: Tensor,
                       tangents: tuple[Tensor, Tensor] | None) -> tuple[Tensor, ...]:

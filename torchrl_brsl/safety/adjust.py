@@ -392,14 +392,21 @@ def _leaf_rollout(checker: PlanChecker, x0: Tensor, plan: Tensor) -> tuple[Tenso
     rollout ``d centres / d plan`` ``[B, T, n, P, m]`` along the plan's own sets.
 
     Each step maps the centres' directions with the leaf models and relaxations it chose
-    (held fixed; :meth:`DataDrivenReach.step_sets` ``tangents``), and a braking policy's tail
-    with its derivative at the centres: one rollout, where finite differences need ``P m + 1``.
+    (held fixed; :meth:`DataDrivenReach.reach_covered` ``tangents``, one compiled loop with
+    compiled steps), and a braking policy's tail step by step with its derivative at the centres:
+    one rollout, where finite differences need ``P m + 1``.
     Exact at a point set between kinks; a linearisation elsewhere (every iterate is still checked).
     """
     n_envs, plan_steps, m = plan.shape
     n_vars, reach = plan_steps * m, checker.reach
     basis = torch.eye(n_vars, dtype=plan.dtype, device=plan.device).view(plan_steps, m, n_vars)
     center = x0.to(plan.dtype)
+    if checker.failsafe.policy is None:  # the actions known in advance: the whole plan in one call
+        actions = torch.cat((plan, checker.hold(plan).expand(n_envs, checker.horizon - plan_steps, m)), dim=1)
+        du = torch.cat((basis, basis.new_zeros(checker.horizon - plan_steps, m, n_vars))).expand(n_envs, -1, -1, -1)
+        sets, covered, moved = reach.reach_covered(Zonotope.from_point(center), actions,
+                                                   (center.new_zeros(n_envs, reach.state_dim, n_vars), du))
+        return actions, sets, covered, moved.reshape(n_envs, checker.horizon, reach.state_dim, plan_steps, m)
     generators = center.new_zeros(n_envs, reach.state_dim, 0)
     tangent = center.new_zeros(n_envs, reach.state_dim, n_vars)
     covered = torch.ones(n_envs, dtype=torch.bool, device=plan.device)
@@ -407,8 +414,6 @@ def _leaf_rollout(checker: PlanChecker, x0: Tensor, plan: Tensor) -> tuple[Tenso
     for j in range(checker.horizon):
         if j < plan_steps:
             action, moved = plan[:, j], basis[j].expand(n_envs, m, n_vars)
-        elif checker.failsafe.policy is None:
-            action, moved = checker.hold(plan).expand(n_envs, m), tangent.new_zeros(n_envs, m, n_vars)
         else:
             action = checker.brake(center)
             moved = _brake_derivative(checker, center) @ tangent
