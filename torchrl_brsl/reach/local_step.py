@@ -170,7 +170,7 @@ class LocalStep:
             try:
                 return self._run_compiled_loop(loop, batch, center, generators, actions, tangents)
             except Exception as error:  # the compiler's failure must not stop a control loop
-                _warn_eager("the compiled reachable sets of a plan", error)
+                _warn_eager("the compiled reachable sets of a plan", error, instead="step by step")
                 self._compiled_loop = None
         covered = torch.ones(batch, dtype=torch.bool, device=center.device)
         centers, sets, moved = [], [], []
@@ -403,8 +403,8 @@ def _loop_options(compile_kwargs: dict) -> dict:
     return {**compile_kwargs, "options": {"cpp_wrapper": True}}
 
 
-def _warn_eager(what: str, error: Exception) -> None:
-    """Say once why a compiled path failed; the caller runs eagerly from then on."""
+def _warn_eager(what: str, error: Exception, instead: str = "eagerly") -> None:
+    """Say once why a compiled path failed; the caller runs it ``instead`` from then on."""
     reason = (str(error).strip().splitlines() or [""])[-1]
-    warnings.warn(f"{what} failed ({type(error).__name__}: {reason}); running it eagerly from now on",
+    warnings.warn(f"{what} failed ({type(error).__name__}: {reason}); running it {instead} from now on",
                   RuntimeWarning, stacklevel=3)
