@@ -410,10 +410,11 @@ class DataDrivenReach(nn.Module):
         """Run the local model's steps (:meth:`step_sets`) through :func:`torch.compile`; returns ``self``.
 
         The same operations, fused, and the same sets up to rounding: a plan's sets without
-        gradients (checking) run as one compiled loop, 10-15x faster than eager at batch 1; single
-        steps (the adjusters' linearisation and gradients) 2-5x (``benchmarks/bench_compiled_step.py``).
-        Compiling a graph takes under a minute with an empty cache, seconds once the on-disk cache
-        holds it. ``warm_up`` compiles the checking and the linearisation graphs here, on two
+        gradients (checking, and the facet QP's linearisation with the constant brake) run as one
+        compiled loop, 7-9x faster than eager at batch 1; single steps (gradients, a braking
+        policy's tail) 2-5x (``benchmarks/bench_compiled_step.py``). The warm-up's four graphs take
+        about a minute per model on a 2-core CPU, in every process: the plan's loops are not served
+        by the on-disk cache. ``warm_up`` compiles the checking and the linearisation graphs here, on two
         offline states, so that no control step stalls on it (the graphs of gradients through the
         steps, for the gradient adjuster, compile on first use). A global model's steps are one
         affine map and stay eager: it records the choice for the rollout of a braking policy's tail
