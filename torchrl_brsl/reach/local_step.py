@@ -18,13 +18,13 @@ gradients (:meth:`LocalStep.plan_sets`, the checking path) runs as one compiled 
 from __future__ import annotations
 
 import types
-import warnings
 from typing import Sequence
 
 import torch
 from torch import Tensor
 from torch._higher_order_ops.while_loop import while_loop
 
+from torchrl_brsl._compiling import own_code, warn_fallback
 from torchrl_brsl.reach.cells import leaf_bounds, leaf_distance, leaf_layout
 from torchrl_brsl.reach.hinges import product_relaxation, relu_relaxation
 from torchrl_brsl.sets import Zonotope, pad_generators, reduce_girard
@@ -99,8 +99,7 @@ class LocalStep:
         recompilations) by code object, so copies per model and use keep that model's graphs when its
         step is rebuilt (after ``.to()``), never evict another model's, and keep each use's guards apart.
         Without ``loop``, ``None`` for the loop's copies (plans run as compiled steps)."""
-        steps = tuple(types.FunctionType(f.__code__.replace(), f.__globals__, f.__name__, f.__defaults__, f.__closure__)
-                      for f in (LocalStep._step, LocalStep._step, LocalStep._loop, LocalStep._loop))
+        steps = tuple(own_code(f) for f in (LocalStep._step, LocalStep._step, LocalStep._loop, LocalStep._loop))
         return steps if loop else steps[:2] + (None, None)
 
     def _noise(self, model) -> None:
@@ -142,7 +141,7 @@ class LocalStep:
             try:
                 return self._run_compiled(center, generators, action, tangents)
             except Exception as error:  # the compiler's failure must not stop a control loop
-                _warn_eager("the compiled reachable-set step", error)
+                warn_fallback("the compiled reachable-set step", error)
                 self._compiled = None
         return self._step(center, generators, action, tangents)
 
@@ -171,7 +170,7 @@ class LocalStep:
             try:
                 return self._run_compiled_loop(loop, batch, center, generators, actions, tangents)
             except Exception as error:  # the compiler's failure must not stop a control loop
-                _warn_eager("the compiled reachable sets of a plan", error, instead="step by step")
+                warn_fallback("the compiled reachable sets of a plan", error, instead="step by step")
                 self._compiled_loop = None
         covered = torch.ones(batch, dtype=torch.bool, device=center.device)
         centers, sets, moved = [], [], []
@@ -209,9 +208,8 @@ class LocalStep:
                 torch._dynamo.mark_dynamic(actions, 2)
         with torch.no_grad():
             out = loop(center, generators, actions) if tangents is None else loop(center, generators, actions, dc)
-        steps_first = ((n,), (n, width), (n, -1))
         centers, sets, *moved = (t[:, :count].transpose(0, 1).reshape(*batch, horizon, *shape)
-                                 for t, shape in zip(out[:1] + out[1:2] + out[3:], steps_first))
+                                 for t, shape in zip((out[0], out[1], *out[3:]), ((n,), (n, width), (n, -1))))
         with skip_value_checks():  # finite by construction
             result = (Zonotope(centers, sets), out[2][:count].reshape(batch))
         return result + tuple(moved)
@@ -403,9 +401,3 @@ def _loop_options(compile_kwargs: dict) -> dict:
         return dict(compile_kwargs)
     return {**compile_kwargs, "options": {"cpp_wrapper": True}}
 
-
-def _warn_eager(what: str, error: Exception, instead: str = "eagerly") -> None:
-    """Say once why a compiled path failed; the caller runs it ``instead`` from then on."""
-    reason = (str(error).strip().splitlines() or [""])[-1]
-    warnings.warn(f"{what} failed ({type(error).__name__}: {reason}); running it {instead} from now on",
-                  RuntimeWarning, stacklevel=3)

@@ -2,13 +2,13 @@
 from __future__ import annotations
 
 import copy
-import types
 import warnings
 from typing import Any, Callable, NamedTuple, Sequence
 
 import torch
 from torch import Tensor
 
+from torchrl_brsl._compiling import own_code, warn_fallback
 from torchrl_brsl.collision import PairFacets, ZonotopeCollisionChecker, collision_value, pair_facets, pair_gauge
 from torchrl_brsl.collision.closed_form import CLOSED_FORM_DIMS, rows_at
 from torchrl_brsl.reach import DataDrivenReach, stack_steps
@@ -347,17 +347,15 @@ class PlanChecker:
         if options is None or length < FUSE_FROM_STEPS or self._memo.get(("eager", function)) or not len(batch):
             return function(batch, *args)
         try:
-            compiled = self.memo(("compiled", function, repr(sorted(options.items()))), lambda: torch.compile(
-                types.FunctionType(function.__code__.replace(), function.__globals__, function.__name__), **options))
+            compiled = self.memo(("compiled", function, repr(sorted(options.items()))),
+                                 lambda: torch.compile(own_code(function), **options))
             count = batch.shape[0]
             padded = batch.expand(2, *batch.shape[1:]) if count < 2 else batch
             padded = padded.contiguous() if padded._base is None else padded.clone()
             torch._dynamo.mark_dynamic(padded, 0)
             return tuple(t[:count] for t in compiled(padded, *args, fused=True))
         except Exception as error:  # the compiler's failure must not stop a control loop
-            reason = (str(error).strip().splitlines() or [""])[-1]
-            warnings.warn(f"the compiled {function.__name__} failed ({type(error).__name__}: {reason}); running it "
-                          "eagerly from now on", RuntimeWarning, stacklevel=2)
+            warn_fallback(f"the compiled {function.__name__}", error)
             self._memo[("eager", function)] = True
             return function(batch, *args)
 
