@@ -8,7 +8,7 @@ their sets, plans claimed (inside the data's cells), and the time of one plan's 
 (``T = 20``, one CPU thread, batch of 1 and per plan in a batch of 64). Systems with a
 heading also get the local model fitted in the body frame (``body``, :class:`BodyFrame`).
 
-Usage: ``python benchmarks/bench_reach_tightness.py [--quick]``
+Usage: ``python benchmarks/bench_reach_tightness.py [--quick] [--compile] [--systems bicycle,...] [--data 500,2000]``
 """
 from __future__ import annotations
 
@@ -37,12 +37,14 @@ def plan_time_ms(reach: DataDrivenReach, system, batch: int, repeats: int) -> fl
     return (time.perf_counter() - start) / repeats * 1e3 / batch
 
 
-def measure(system, num: int, model: str, samples: int, repeats: int) -> dict:
+def measure(system, num: int, model: str, samples: int, repeats: int, compiled: bool = False) -> dict:
     gen = torch.Generator().manual_seed(0)
     x, xp, u = system.offline_data(num, gen)
     reach = DataDrivenReach.fit(x, xp, u, system.noise, translation_invariant_dims=system.translation_invariant_dims,
                                 method="global" if model == "global" else "local", max_generators=24,
                                 body_frame=system.body_frame if model == "body" else None)
+    if compiled and model != "global":
+        reach.compile_steps()
     center, half = (system.state_low + system.state_high) / 2, (system.state_high - system.state_low) / 2
     x0 = center + 0.7 * half * (torch.rand(20, center.shape[0], generator=gen, dtype=torch.float64) * 2 - 1)
     x0[:, list(system.translation_invariant_dims)] = 0.0
@@ -57,16 +59,24 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true",
                         help="60 samples per plan and fewer repeats (a smoke run: the ratios read high)")
+    parser.add_argument("--compile", action="store_true",
+                        help="the local models compiled (DataDrivenReach.compile_steps): their sets are sampled and "
+                             "timed through the compiled plan loop")
+    parser.add_argument("--systems", default=",".join(SYSTEMS), help="comma-separated, of: " + ", ".join(SYSTEMS))
+    parser.add_argument("--data", default="500,2000", help="comma-separated offline budgets")
     args = parser.parse_args()
+    unknown = set(args.systems.split(",")) - set(SYSTEMS)
+    if unknown:
+        parser.error(f"--systems: unknown {sorted(unknown)}; known: {', '.join(SYSTEMS)}")
     torch.set_num_threads(1)
     samples, repeats = (60, 5) if args.quick else (300, 50)
     print(f"{'system':<18}{'data':>6}{'model':>8}{'width/spread':>14}{'outside':>16}{'claimed':>9}"
           f"{'ms/plan':>9}{'ms/plan@64':>12}")
-    for name, system_type in SYSTEMS.items():
-        system = system_type()
-        for num in (500, 2000):
+    for name in args.systems.split(","):
+        system = SYSTEMS[name]()
+        for num in (int(n) for n in args.data.split(",")):
             models = ("global", "local") + (("body",) if system.body_frame is not None else ())
-            rows = {model: measure(system, num, model, samples, repeats) for model in models}
+            rows = {model: measure(system, num, model, samples, repeats, args.compile) for model in models}
             for method, row in rows.items():
                 print(f"{name:<18}{num:>6}{method:>8}{row['ratio']:>14.2f}{row['outside']:>8}/{row['checked']:<7}"
                       f"{row['claimed']:>6}/20{row['ms']:>9.3f}{row['ms64']:>12.4f}")
