@@ -9,7 +9,11 @@ runs); and ``reach`` on the compiled model, which runs the whole plan as one com
 on-disk cache decides), and how far the compiled plan's sets are from the eager ones (largest
 centre difference, extreme ratios of the interval radii).
 
-Usage: ``python benchmarks/bench_compiled_step.py [--quick]``
+``--vectors`` instead times the compiled loop with the package's vector width (256 bits where
+inductor would use AVX-512, :func:`torchrl_brsl._compiling.vector_options`) against inductor's own
+choice, alternated in one process, and how far their sets differ.
+
+Usage: ``python benchmarks/bench_compiled_step.py [--quick] [--vectors]``
 """
 from __future__ import annotations
 
@@ -19,6 +23,7 @@ import time
 
 import torch
 
+from torchrl_brsl._compiling import vector_options
 from torchrl_brsl.reach import (CappedVelocityServo, DataDrivenReach, DoubleIntegrator, KinematicBicycle,
                                 SaturatedThrustPoint, Unicycle)
 from torchrl_brsl.sets import Zonotope
@@ -67,12 +72,46 @@ def compare(system, batch: int, repeats: int) -> dict[str, float]:
             "center": float((a.center - b.center).abs().max()), "low": float(ratio.min()), "high": float(ratio.max())}
 
 
+def compare_vectors(system, batch: int, repeats: int) -> dict[str, float]:
+    """The compiled loop with the package's vector width against inductor's own (``--vectors``)."""
+    narrow, wide = fit(system).compile_steps(), fit(system).compile_steps(options={"cpp_wrapper": True})
+    gen = torch.Generator().manual_seed(batch)
+    initial = Zonotope.from_point(system.sample_states(batch, gen) * 0.5)
+    plans = system.sample_actions(batch, HORIZON, generator=gen)
+    times = {"narrow": [], "wide": []}
+    with torch.no_grad():
+        for _ in range(repeats):
+            for name, reach in (("narrow", narrow), ("wide", wide)):
+                times[name].append(timed(lambda: reach.reach(initial, plans)))
+        a, b = narrow.reach(initial, plans), wide.reach(initial, plans)
+    return {**{name: statistics.median(t) / batch for name, t in times.items()},
+            "center": float((a.center - b.center).abs().max()),
+            "generators": float((a.generators - b.generators).abs().max())}
+
+
+def main_vectors(batches: tuple[int, ...], repeats: int) -> None:
+    options = vector_options()
+    if not options:
+        print("inductor vectorises at most 256 bits on this CPU: the package keeps its choice, nothing to compare")
+        return
+    print(f"the compiled loop, median ms per plan (T = {HORIZON}): the package's {options} against inductor's own")
+    print(f"{'system':<20}{'batch':>6}{'256-bit':>9}{'own':>9}{'own/256':>9}{'|Δ centre|':>12}{'|Δ generators|':>16}")
+    for name, system_type in SYSTEMS.items():
+        for batch in batches:
+            row = compare_vectors(system_type(), batch, repeats)
+            print(f"{name:<20}{batch:>6}{row['narrow']:>9.3f}{row['wide']:>9.3f}{row['wide'] / row['narrow']:>8.2f}x"
+                  f"{row['center']:>12.1e}{row['generators']:>16.1e}", flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer repeats and batch sizes")
+    parser.add_argument("--vectors", action="store_true", help="the loop's vector width: the package's and inductor's")
     args = parser.parse_args()
     torch.set_num_threads(1)
     batches, repeats = ((1, 16), 5) if args.quick else ((1, 4, 16, 64), 20)
+    if args.vectors:
+        return main_vectors(batches, repeats)
     print(f"one plan's sets (T = {HORIZON}), one CPU thread, no gradients, median ms per plan; the three alternated")
     print(f"{'system':<20}{'batch':>6}{'eager':>9}{'steps':>9}{'loop':>9}{'eager/loop':>12}{'steps/loop':>12}"
           f"{'compile s':>11}{'|Δ centre|':>12}{'radius ratio':>18}")

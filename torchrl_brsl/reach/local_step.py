@@ -24,7 +24,7 @@ import torch
 from torch import Tensor
 from torch._higher_order_ops.while_loop import while_loop
 
-from torchrl_brsl._compiling import own_code, warn_fallback
+from torchrl_brsl._compiling import inductor_kwargs, own_code, warn_fallback
 from torchrl_brsl.reach.cells import leaf_bounds, leaf_distance, leaf_layout
 from torchrl_brsl.reach.hinges import product_relaxation, relu_relaxation
 from torchrl_brsl.sets import Zonotope, pad_generators, reduce_girard
@@ -86,10 +86,12 @@ class LocalStep:
         self._compiled = self._compiled_loop = None
         if compile_kwargs is not None:
             step, tangent_step, loop, tangent_loop = step_functions or LocalStep.compiled_functions()
-            self._compiled = tuple(torch.compile(types.MethodType(f, self), **compile_kwargs)
+            self._compiled = tuple(torch.compile(types.MethodType(f, self), **inductor_kwargs(compile_kwargs))
                                    for f in (step, tangent_step))
-            if loop is not None:
-                self._compiled_loop = tuple(torch.compile(types.MethodType(f, self), **_loop_options(compile_kwargs))
+            if loop is not None:  # inductor's C++ wrapper: a loop of about 50 small kernels per step runs 2-3x
+                # faster when its body is called from C++ rather than Python
+                loop_kwargs = inductor_kwargs(compile_kwargs, cpp_wrapper=True)
+                self._compiled_loop = tuple(torch.compile(types.MethodType(f, self), **loop_kwargs)
                                             for f in (loop, tangent_loop))
 
     @staticmethod
@@ -390,14 +392,3 @@ def stack_steps(centers: Sequence[Tensor], generators: Sequence[Tensor]) -> Zono
     width = max(g.shape[-1] for g in generators)
     with skip_value_checks():  # built from the validated model
         return Zonotope(torch.stack(list(centers), -2), torch.stack([pad_generators(g, width) for g in generators], -3))
-
-
-def _loop_options(compile_kwargs: dict) -> dict:
-    """:func:`torch.compile` arguments of the whole-plan loop: the step's, with inductor's C++ wrapper where
-    the step's use inductor without options of their own (a loop of about 50 small kernels per step runs
-    2-3x faster when its body is called from C++ rather than Python)."""
-    inductor = compile_kwargs.get("backend", "inductor") == "inductor"
-    if not inductor or "options" in compile_kwargs or "mode" in compile_kwargs:
-        return dict(compile_kwargs)
-    return {**compile_kwargs, "options": {"cpp_wrapper": True}}
-

@@ -8,7 +8,7 @@ from typing import Any, Callable, NamedTuple, Sequence
 import torch
 from torch import Tensor
 
-from torchrl_brsl._compiling import own_code, warn_fallback
+from torchrl_brsl._compiling import inductor_kwargs, own_code, warn_fallback
 from torchrl_brsl.collision import PairFacets, ZonotopeCollisionChecker, collision_value, pair_facets, pair_gauge
 from torchrl_brsl.collision.closed_form import CLOSED_FORM_DIMS, rows_at
 from torchrl_brsl.reach import DataDrivenReach, stack_steps
@@ -348,7 +348,7 @@ class PlanChecker:
             return function(batch, *args)
         try:
             compiled = self.memo(("compiled", function, repr(sorted(options.items()))),
-                                 lambda: torch.compile(own_code(function), **options))
+                                 lambda: torch.compile(own_code(function), **inductor_kwargs(options)))
             count = batch.shape[0]
             padded = batch.expand(2, *batch.shape[1:]) if count < 2 else batch
             padded = padded.contiguous() if padded._base is None else padded.clone()

@@ -1,0 +1,54 @@
+"""What the compiled paths share (``torchrl_brsl._compiling``): inductor's options for small tensors."""
+import pytest
+import torch
+
+from torchrl_brsl import _compiling
+from torchrl_brsl._compiling import inductor_kwargs, vector_options
+
+
+class _Isa:
+    def __init__(self, width):
+        self.width = width
+
+    def bit_width(self):
+        return self.width
+
+
+@pytest.fixture
+def isa(monkeypatch):
+    """Set the vector width inductor would pick (``None``: picking it fails); the cache is cleared around it."""
+    import torch._inductor.cpu_vec_isa as cpu_vec_isa
+
+    def use(width):
+        def pick():
+            if width is None:
+                raise RuntimeError("no C++ compiler")
+            return _Isa(width)
+        monkeypatch.setattr(cpu_vec_isa, "pick_vec_isa", pick)
+        vector_options.cache_clear()
+    yield use
+    vector_options.cache_clear()
+
+
+@pytest.mark.parametrize("width, options", [(512, {"cpp.simdlen": 256}), (256, {}), (128, {}), (None, {})])
+def test_vectors_narrow_only_where_inductor_would_use_avx512(isa, width, options):
+    isa(width)
+    assert vector_options() == options
+
+
+def test_the_callers_own_choices_are_kept(isa):
+    isa(512)
+    assert inductor_kwargs({"backend": "aot_eager"}, cpp_wrapper=True) == {"backend": "aot_eager"}
+    assert inductor_kwargs({"mode": "max-autotune"}) == {"mode": "max-autotune"}
+    assert inductor_kwargs({"options": {"cpp_wrapper": False}}, cpp_wrapper=True) == {"options": {"cpp_wrapper": False}}
+    assert inductor_kwargs({"dynamic": True}, cpp_wrapper=True) == {
+        "dynamic": True, "options": {"cpp.simdlen": 256, "cpp_wrapper": True}}
+    isa(256)
+    assert inductor_kwargs({}) == {"options": {}}
+
+
+def test_the_options_are_inductors():
+    """The option names exist in this torch's inductor config (a rename would otherwise fail only at compile)."""
+    with torch._inductor.config.patch({"cpp.simdlen": 256, "cpp_wrapper": True}):
+        assert torch._inductor.config.cpp.simdlen == 256
+    assert _compiling.vector_options() in ({}, {"cpp.simdlen": 256})
