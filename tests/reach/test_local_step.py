@@ -52,6 +52,9 @@ def test_compiled_steps_give_the_eager_sets_and_the_sampling_has_teeth(bicycle):
     _sets(model, x0[:4].clone(), plans[:4].clone())  # inputs that are not views (the warm-up's are)
     assert counters["frames"]["ok"] == compiled_frames  # no step compiled after the warm-up
     assert model.compile_steps(backend="aot_eager") is model and _step_of(model) is step  # kept
+    start = x0[:2].clone().requires_grad_(True)
+    model.reach(Zonotope.from_point(start), plans[:2]).center.sum().backward()
+    assert counters["frames"]["ok"] > compiled_frames  # teeth: the counter sees a new graph (gradients)
     assert sampled(system, model).violations == 0
     errors = model.cell_errors.clone()
     try:  # teeth: the leaves' error intervals scaled by 0.3 (as in the body-frame test) let states out
