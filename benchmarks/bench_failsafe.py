@@ -7,12 +7,13 @@ derivative that is not zero), i.e. the constant brake's actions, so every differ
 the code path: with a braking policy the braking tail is rolled out step by step and the
 adjusters linearise it along that rollout (one ``n x n`` product per tail step where the
 policy's derivative is not zero), where the constant brake makes every centre one affine map of
-(state, plan). Both reachability models are timed; only the global one has those fast paths.
-``--compile`` runs the global model's braking tails compiled (``DataDrivenReach.compile_steps``:
-one graph for the tail's rollout and one for its Jacobian chain, compiled in the untimed first steps) and
-times the global model only.
+(state, plan). Both reachability models are timed. ``--compile`` compiles them
+(``DataDrivenReach.compile_steps``): the global model's braking tails (one graph for the tail's
+rollout and one for its Jacobian chain, compiled in the untimed first steps), the local model's
+plans with the braking policy's tail in the same compiled loop (one graph per policy, compiled when
+the layer is built); ``--models`` picks the models.
 
-Usage: ``python benchmarks/bench_failsafe.py [--quick] [--compile]``
+Usage: ``python benchmarks/bench_failsafe.py [--quick] [--compile] [--models global,local]``
 """
 from __future__ import annotations
 
@@ -33,7 +34,8 @@ from torchrl_brsl.sets import Zonotope  # noqa: E402
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true")
-    parser.add_argument("--compile", action="store_true", help="the global model's braking tails compiled")
+    parser.add_argument("--compile", action="store_true", help="the models compiled (DataDrivenReach.compile_steps)")
+    parser.add_argument("--models", default="global,local", help="comma-separated: global, local")
     args = parser.parse_args()
     torch.set_num_threads(1)
     info = envs.safety_info(TASK)
@@ -47,7 +49,7 @@ def main() -> None:
               "linear": Failsafe(zero, info.n_brk, policy=lambda x: zero.to(x) + 1e-9 * x[..., velocity])}
     print(f"{TASK}: n_plan = {N_PLAN}, n_brk = {info.n_brk}, one CPU thread; median / p99 ms per step")
     print(f"{'':<44}{'constant brake':>16}{'policy':>16}{'linear policy':>16}{'ratios':>12}")
-    for method in ("global",) if args.compile else ("global", "local"):
+    for method in args.models.split(","):
         reach = DataDrivenReach.from_data(data, noise, translation_invariant_dims=info.position_dims,
                                           max_generators=30, method=method)
         if args.compile:

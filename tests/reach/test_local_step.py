@@ -88,6 +88,36 @@ def test_compiled_tangents_and_gradients_are_the_eager_ones(bicycle):
         x0, generators, plans[:, 0], (tangents[0], plan_tangents[1][:, 0]))[-1], rtol=1e-12, atol=1e-14)
 
 
+def test_a_braking_policys_tail_runs_in_the_plans_loop(bicycle):
+    """``reach_covered(..., brake=(policy, steps))``: the tail's actions are the policy's at each set's centre, the
+    same as eagerly, and the sets are those of the plan followed by those actions (whose soundness the sampling
+    tests show)."""
+    system, model = bicycle
+    x0, plans, _ = random_plans(system, n_plans=5, horizon=4)
+    initial = Zonotope.from_point(x0)
+    eager = model.compile_steps(False).reach_covered(initial, plans, brake=(system.braking, 6))
+    model.compile_steps(backend="aot_eager")
+    frames = counters["frames"]["ok"]
+    for batch in (5, 3):  # the policy's graph compiles once, for every batch
+        compiled = model.reach_covered(Zonotope.from_point(x0[:batch]), plans[:batch], brake=(system.braking, 6))
+        _assert_same(_sets_of(compiled), _sets_of(eager, batch))
+        torch.testing.assert_close(compiled[2], eager[2][:batch], rtol=0, atol=1e-12)
+    assert counters["frames"]["ok"] == frames + 1 and _step_of(model)._compiled_loop is not None
+    actions = eager[2]  # [5, 10, 2]: the plan, then the braking actions at the centres
+    assert actions.shape == (5, 10, 2) and torch.equal(actions[:, :4], plans)
+    torch.testing.assert_close(actions[:, 4:], system.braking(eager[0].center[:, 3:-1]), rtol=0, atol=0)
+    _assert_same(_sets_of(model.reach_covered(initial, actions)), _sets_of(eager))
+    with pytest.raises(ValueError, match="brake.*tangents"):
+        model.reach_covered(initial, plans, (x0.new_zeros(5, 4, 1), plans.unsqueeze(-1)), brake=(system.braking, 2))
+    with pytest.raises(ValueError, match="brake.*local model"):
+        fit(system, 200, method="global").reach_covered(initial, plans, brake=(system.braking, 2))
+
+
+def _sets_of(result, batch=None):
+    sets, covered = result[:2]
+    return sets.center[:batch], sets.generators.abs().sum(-1)[:batch], covered[:batch]
+
+
 def test_tangents_need_a_local_model(bicycle):
     system, _ = bicycle
     x0, plans, _ = random_plans(system, n_plans=2, horizon=3)

@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 import torch
 from tensordict import TensorDict
@@ -354,8 +354,9 @@ class DataDrivenReach(nn.Module):
             raise ValueError(f"`actions` must end in {self.action_dim} (the action dim), got {tuple(actions.shape)}")
         return actions
 
-    def reach_covered(self, initial: Zonotope, actions: Tensor,
-                      tangents: tuple[Tensor, Tensor] | None = None) -> tuple[Zonotope, Tensor] | tuple[Zonotope, ...]:
+    def reach_covered(self, initial: Zonotope, actions: Tensor, tangents: tuple[Tensor, Tensor] | None = None,
+                      brake: tuple[Callable[[Tensor], Tensor], int] | None = None
+                      ) -> tuple[Zonotope, Tensor] | tuple[Zonotope, ...]:
         """:meth:`reach` and whether every step lies in the region the data cover.
 
         For ``method="local"`` each step ``R_j -> R_{j+1}`` is :meth:`step_sets`; a step whose
@@ -369,15 +370,20 @@ class DataDrivenReach(nn.Module):
             tangents: a local model only: ``(dc [..., n, k], du [..., H, m, k])``, directions of the
                 initial centre and the actions, mapped to the centres' directions to first order with
                 each step's leaf models and relaxations held fixed (a linearisation for the adjusters).
+            brake: a local model only: ``(policy, steps)``, ``steps`` more steps after the plan, each under
+                ``policy(centre)`` (``[..., n] -> [..., m]``, e.g. a braking policy's actions as the robot
+                receives them), in the plan's compiled loop when the model is compiled.
 
         Returns:
-            ``(sets [..., H], covered [...])``, and with ``tangents`` the centres' directions
-            ``[..., H, n, k]``.
+            ``(sets [..., H], covered [...])``; with ``tangents`` also the centres' directions
+            ``[..., H, n, k]``; with ``brake`` also every step's action ``[..., H + steps, m]`` (and
+            ``H + steps`` sets).
         """
         actions = self._check_reach_args(initial, actions)
-        if tangents is not None and not self.plan_dependent:
-            raise ValueError("`tangents` need a local model (method='local'); a global model's centres are affine "
-                             "in the plan (see `reach_centers`)")
+        for name, value in (("tangents", tangents), ("brake", brake)):
+            if value is not None and not self.plan_dependent:
+                raise ValueError(f"`{name}` need a local model (method='local'); a global model's centres are "
+                                 "affine in the plan (see `reach_centers`)")
         if not self.plan_dependent:
             sets = self.reach(initial, actions)
             return sets, torch.ones(sets.batch_size[:-1], dtype=torch.bool, device=sets.center.device)
@@ -386,7 +392,7 @@ class DataDrivenReach(nn.Module):
         batch = torch.broadcast_shapes(initial.batch_size, actions.shape[:-2])
         center = initial.center.to(dtype).expand(*batch, self.state_dim)
         generators = initial.generators.to(dtype).expand(*batch, *initial.generators.shape[-2:])
-        return self._local_step().plan_sets(center, generators, actions, tangents)
+        return self._local_step().plan_sets(center, generators, actions, tangents, brake)
 
     def step_sets(self, center: Tensor, generators: Tensor, action: Tensor,
                   tangents: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, ...]:

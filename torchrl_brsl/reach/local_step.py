@@ -18,7 +18,7 @@ gradients (:meth:`LocalStep.plan_sets`, the checking path) runs as one compiled 
 from __future__ import annotations
 
 import types
-from typing import Sequence
+from typing import Callable, Sequence
 
 import torch
 from torch import Tensor
@@ -148,8 +148,9 @@ class LocalStep:
         return self._step(center, generators, action, tangents)
 
     def plan_sets(self, center: Tensor, generators: Tensor, actions: Tensor,
-                  tangents: tuple[Tensor, Tensor] | None = None) -> tuple:
-        """The sets of whole plans: the steps under ``actions`` ``[..., T, m]`` from ``Z(center [..., n],
+                  tangents: tuple[Tensor, Tensor] | None = None,
+                  brake: tuple[Callable[[Tensor], Tensor], int] | None = None) -> tuple:
+        """The sets of whole plans: the steps under ``actions`` ``[..., P, m]`` from ``Z(center [..., n],
         generators [..., n, p])``.
 
         Compiled and without gradients, the plan runs as one graph (a ``while_loop`` over the step):
@@ -157,27 +158,38 @@ class LocalStep:
         (``benchmarks/bench_compiled_step.py``). Otherwise step by step.
 
         Args:
-            tangents: optional ``(dc [..., n, k], du [..., T, m, k])``: directions of the initial centre
+            tangents: optional ``(dc [..., n, k], du [..., P, m, k])``: directions of the initial centre
                 and of every action, mapped along the plan as :meth:`__call__` maps them.
+            brake: optional ``(policy, steps)``: after the plan, ``steps`` more steps under ``policy(centre)``
+                (``[..., n] -> [..., m]``, the action the robot receives at each set's centre: a braking
+                policy's tail), in the same loop when compiled (the policy must then be traceable, else
+                the plan runs step by step); not with ``tangents``.
 
         Returns:
             ``(sets [..., T], covered [...])``: ``covered`` if every step is; with ``tangents``, also
-            the centres' directions ``[..., T, n, k]``.
+            the centres' directions ``[..., T, n, k]``; with ``brake``, also every step's action ``[..., T, m]``
+            (``T = P + steps``).
         """
+        if brake is not None and tangents is not None:
+            raise ValueError("`brake` and `tangents` cannot be combined: a braking policy's tail is linearised "
+                             "step by step")
         batch = torch.broadcast_shapes(center.shape[:-1], generators.shape[:-2], actions.shape[:-2])
         inputs = (center, generators, actions, *(tangents or ()))
         differentiable = torch.is_grad_enabled() and any(t.requires_grad for t in inputs)
         loop = self._compiled_loop[tangents is not None] if self._compiled_loop is not None else None
-        if loop is not None and actions.shape[-2] >= 2 and batch.numel() > 0 and not differentiable:
+        steps = actions.shape[-2] + (brake[1] if brake else 0)
+        if loop is not None and steps >= 2 and batch.numel() > 0 and not differentiable:
             try:
-                return self._run_compiled_loop(loop, batch, center, generators, actions, tangents)
+                return self._run_compiled_loop(loop, batch, center, generators, actions, tangents, brake)
             except Exception as error:  # the compiler's failure must not stop a control loop
                 warn_fallback("the compiled reachable sets of a plan", error, instead="step by step")
                 self._compiled_loop = None
         covered = torch.ones(batch, dtype=torch.bool, device=center.device)
-        centers, sets, moved = [], [], []
+        centers, sets, moved, applied = [], [], [], []
         tangent, du = tangents if tangents is not None else (None, None)
-        for j, action in enumerate(actions.expand(*batch, *actions.shape[-2:]).unbind(-2)):
+        plan = actions.expand(*batch, *actions.shape[-2:]).unbind(-2)
+        for j in range(steps):
+            action = plan[j] if j < len(plan) else brake[0](center)
             if tangents is None:
                 center, generators, inside = self(center, generators, action)
             else:
@@ -186,70 +198,88 @@ class LocalStep:
             covered = covered & inside
             centers.append(center)
             sets.append(generators)
+            applied.append(action)
         result = (stack_steps(centers, sets), covered)
+        if brake is not None:
+            return (*result, torch.stack(applied, -2))
         return result if tangents is None else (*result, torch.stack(moved, -3))
 
     def _run_compiled_loop(self, loop, batch: torch.Size, center: Tensor, generators: Tensor, actions: Tensor,
-                           tangents: tuple[Tensor, Tensor] | None) -> tuple:
+                           tangents: tuple[Tensor, Tensor] | None,
+                           brake: tuple[Callable[[Tensor], Tensor], int] | None) -> tuple:
         """:meth:`plan_sets` through the compiled :meth:`_loop`, its inputs as :meth:`_compiled_inputs` makes them,
-        steps first, and the plan's length (and the tangents' count) dynamic: one graph for every length
-        from 2."""
-        count, n, horizon, width = batch.numel(), self.state_dim, actions.shape[-2], self.max_generators
+        steps first, and the plan's length (the tangents' count, the braking tail's length) dynamic: one graph
+        for every length from 2 (and one more per braking policy)."""
+        count, n, width = batch.numel(), self.state_dim, self.max_generators
         if tangents is not None:  # the action tangents travel with the actions: [..., T, m (1 + k)]
             du = tangents[1].expand(*batch, *tangents[1].shape[-3:])
             actions = torch.cat((actions.expand(*batch, *actions.shape[-2:]).unsqueeze(-1), du), dim=-1).flatten(-2)
+        plan_steps = torch.tensor(actions.shape[-2], device=center.device)
+        if brake is not None:  # placeholders for the tail's actions, which the loop computes
+            actions = torch.cat((actions, actions.new_zeros(*actions.shape[:-2], brake[1], actions.shape[-1])), -2)
+        horizon = actions.shape[-2]
         center, generators, actions, dc = self._compiled_inputs(
             batch, center, generators, actions, None if tangents is None else (tangents[0],), action_dims=2)
         actions = actions.transpose(0, 1).contiguous()  # [T, B, m] or [T, B, m (1 + k)]
         for dim in (0, 1):
             torch._dynamo.mark_dynamic(actions, dim)
-        if tangents is not None:
-            dc, k = dc[0], tangents[0].shape[-1]
-            if k >= 2:
-                torch._dynamo.mark_dynamic(dc, 2)
-                torch._dynamo.mark_dynamic(actions, 2)
         with torch.no_grad():
-            out = loop(center, generators, actions) if tangents is None else loop(center, generators, actions, dc)
-        centers, sets, *moved = (t[:, :count].transpose(0, 1).reshape(*batch, horizon, *shape)
-                                 for t, shape in zip((out[0], out[1], *out[3:]), ((n,), (n, width), (n, -1))))
+            if tangents is not None:
+                dc, k = dc[0], tangents[0].shape[-1]
+                if k >= 2:
+                    torch._dynamo.mark_dynamic(dc, 2)
+                    torch._dynamo.mark_dynamic(actions, 2)
+                out = loop(center, generators, actions, dc)
+            else:
+                out = loop(center, generators, actions, None, *(() if brake is None else (brake[0], plan_steps)))
+        shapes = ((n,), (n, width), (n, -1) if tangents is not None else (-1,))
+        centers, sets, *extra = (t[:, :count].transpose(0, 1).reshape(*batch, horizon, *shape)
+                                 for t, shape in zip((out[0], out[1], *out[3:]), shapes))
         with skip_value_checks():  # finite by construction
             result = (Zonotope(centers, sets), out[2][:count].reshape(batch))
-        return result + tuple(moved)
+        return result + tuple(extra)
 
-    def _loop(self, center: Tensor, generators: Tensor, actions: Tensor,
-              tangent: Tensor | None = None) -> tuple[Tensor, ...]:
+    def _loop(self, center: Tensor, generators: Tensor, actions: Tensor, tangent: Tensor | None = None,
+              policy: Callable[[Tensor], Tensor] | None = None, plan_steps: Tensor | None = None) -> tuple[Tensor, ...]:
         """:meth:`_step` over a plan as one ``while_loop``, traced as one graph when compiled: ``center [B, n]``,
         ``generators [B, n, max_generators]``, ``actions [T, B, m]`` to ``(centers [T, B, n], generators
         [T, B, n, max_generators], covered [B])``. With ``tangent`` ``[B, n, k]`` (the initial centre's
         directions), ``actions`` is ``[T, B, m (1 + k)]``, each action followed by its directions, and
-        the centres' directions ``[T, B, n, k]`` come last. The body has no side effects and keeps its
-        carry's shapes (the step reduces to ``max_generators`` columns)."""
+        the centres' directions ``[T, B, n, k]`` come last. With ``policy``, the steps from ``plan_steps``
+        (a 0-d tensor) on take ``policy(centre)`` instead of their row of ``actions``, and the actions taken
+        ``[T, B, m]`` come last. The body has no side effects and keeps its carry's shapes (the step
+        reduces to ``max_generators`` columns)."""
         horizon, m = actions.shape[0], self.widths[1]
 
         def more(i: Tensor, *_) -> Tensor:
             return i < horizon
 
         def step(i: Tensor, center: Tensor, generators: Tensor, covered: Tensor, centers: Tensor, sets: Tensor,
-                 *moved: Tensor):
+                 *extra: Tensor):
             at = i.reshape(1)
             action = actions.index_select(0, at).squeeze(0)
             if tangent is None:
+                if policy is not None:
+                    action = torch.where(i < plan_steps, action, policy(center))
+                    extra = (extra[0].index_copy(0, at, action.unsqueeze(0)),)
                 center, generators, inside = self._step(center, generators, action, None)
             else:
                 action = action.unflatten(-1, (m, -1))
                 center, generators, inside, direction = self._step(center, generators, action[..., 0],
-                                                                   (moved[0], action[..., 1:]))
-                moved = (direction, moved[1].index_copy(0, at, direction.unsqueeze(0)))
+                                                                   (extra[0], action[..., 1:]))
+                extra = (direction, extra[1].index_copy(0, at, direction.unsqueeze(0)))
             return (i + 1, center, generators, covered & inside, centers.index_copy(0, at, center.unsqueeze(0)),
-                    sets.index_copy(0, at, generators.unsqueeze(0)), *moved)
+                    sets.index_copy(0, at, generators.unsqueeze(0)), *extra)
 
         start = (torch.zeros((), dtype=torch.long, device=center.device), center, generators,
                  torch.ones(center.shape[0], dtype=torch.bool, device=center.device),
                  center.new_zeros(horizon, *center.shape), generators.new_zeros(horizon, *generators.shape))
         if tangent is not None:
             start += (tangent, tangent.new_zeros(horizon, *tangent.shape))
-        _, _, _, covered, centers, sets, *moved = while_loop(more, step, start)
-        return (centers, sets, covered, *moved[1:])
+        elif policy is not None:
+            start += (actions.new_zeros(horizon, *actions.shape[1:]),)
+        _, _, _, covered, centers, sets, *extra = while_loop(more, step, start)
+        return (centers, sets, covered, *extra[-1:])
 
     def _run_compiled(self, center: Tensor, generators: Tensor, action: Tensor,
                       tangents: tuple[Tensor, Tensor] | None) -> tuple[Tensor, ...]:

@@ -11,7 +11,7 @@ from torch import Tensor
 from torchrl_brsl._compiling import inductor_kwargs, own_code, warn_fallback
 from torchrl_brsl.collision import PairFacets, ZonotopeCollisionChecker, collision_value, pair_facets, pair_gauge
 from torchrl_brsl.collision.closed_form import CLOSED_FORM_DIMS, rows_at
-from torchrl_brsl.reach import DataDrivenReach, stack_steps
+from torchrl_brsl.reach import DataDrivenReach
 from torchrl_brsl.safety.failsafe import Failsafe
 from torchrl_brsl.sets import Obstacles, Zonotope, reduce_girard
 from torchrl_brsl.sets._checks import skip_value_checks
@@ -159,11 +159,12 @@ class PlanChecker:
         # a model of a restricted domain: the boxes of R_0 (a point) .. R_{T-1} must stay in it
         self._domain_radius = (torch.cat((errors.new_zeros(1, errors.shape[1]), errors[:-1].abs().sum(-1)))
                                if reach.bounded_domain and not self.plan_dependent else None)
-        if (reach.compile_options is not None and failsafe.policy is not None and not self.plan_dependent
-                and self.horizon - 1 >= FUSE_FROM_STEPS):
-            with torch.no_grad():  # compile the one-action plans' braking tail now, not at a control step
-                rest = self.action_low.new_zeros(1, reach.state_dim)
-                self.rollout(rest, self.hold(rest).view(1, 1, -1))
+        if reach.compile_options is not None and failsafe.policy is not None and (
+                self.plan_dependent or self.horizon - 1 >= FUSE_FROM_STEPS):
+            with torch.no_grad():  # compile the braking tail now (the local model's: in the plan's loop), not at a
+                rest = self.action_low.new_zeros(1, reach.state_dim)  # control step
+                rollout = self.rollout_sets if self.plan_dependent else self.rollout
+                rollout(rest, self.hold(rest).view(1, 1, -1))
         vacuous = self.vacuous_stop_dims()
         if vacuous:
             top, tolerance = self._top_speed(), self._stop_tolerance_at_rest()
@@ -377,17 +378,17 @@ class PlanChecker:
             actions = torch.cat((plan, self.hold(plan).expand(plan.shape[0], n_tail, -1)), dim=1)
             sets, covered = self.reach.reach_covered(initial, actions)
             return actions, sets, covered
-        sets, covered = self.reach.reach_covered(initial, plan)
-        center, generators = sets.center[:, -1], sets.generators[:, -1]
-        centers, gens, actions = list(sets.center.unbind(1)), list(sets.generators.unbind(1)), [plan]
-        for _ in range(n_tail):
-            u = self.brake(center)
-            center, generators, inside = self.reach.step_sets(center, generators, u)
-            covered = covered & inside
-            actions.append(u.unsqueeze(1))
-            centers.append(center)
-            gens.append(generators)
-        return torch.cat(actions, dim=1), stack_steps(centers, gens), covered
+        sets, covered, actions = self.reach.reach_covered(initial, plan, brake=(self._tail_brake(plan), n_tail))
+        return actions, sets, covered
+
+    def _tail_brake(self, like: Tensor) -> Callable[[Tensor], Tensor]:
+        """:meth:`brake` as one function per dtype and device, kept in the memo the checker's subsets share: the
+        compiled plan loop keys its graph on the function, so every subset reuses it."""
+        def build() -> Callable[[Tensor], Tensor]:
+            low, high = self.action_low.to(like), self.action_high.to(like)
+            policy, action_dtype = self.failsafe.actions, self.action_dtype
+            return lambda states: _brake_action(policy, states, low, high, action_dtype)
+        return self.memo(("tail brake", like.dtype, like.device), build)
 
     def hold(self, like: Tensor) -> Tensor:
         """The open-loop braking action as the robot receives it (clipped to the bounds, rounded to the
