@@ -415,10 +415,14 @@ class DataDrivenReach(nn.Module):
                       **compile_kwargs) -> DataDrivenReach:
         """Run the local model's steps (:meth:`step_sets`) through :func:`torch.compile`; returns ``self``.
 
-        The same operations, fused, and the same sets up to rounding: a plan's sets without
-        gradients (checking, and the facet QP's linearisation with the constant brake) run as one
-        compiled loop, 7-9x faster than eager at batch 1; single steps (gradients, a braking
-        policy's tail) 2-5x (``benchmarks/bench_compiled_step.py``). The warm-up's four graphs take
+        The same operations, fused, and each step's set the eager one up to rounding (over a plan a
+        rounding difference can flip a discrete choice, a leaf or the columns Girard's reduction
+        keeps: on the Turtlebot's 6-D model, random plans' radii differed by up to 4 %; both are
+        sound bounds of their inputs). A plan's sets without
+        gradients (checking, with a braking policy's tail too, and the facet QP's linearisation with
+        the constant brake) run as one compiled loop, 7-9x faster than eager at batch 1; single steps
+        (gradients, the linearisation along a braking policy) 2-5x
+        (``benchmarks/bench_compiled_step.py``). The warm-up's four graphs take
         about a minute per model on a 2-core CPU, in every process: the plan's loops are not served
         by the on-disk cache. ``warm_up`` compiles the checking and the linearisation graphs here, on two
         offline states, so that no control step stalls on it (the graphs of gradients through the
