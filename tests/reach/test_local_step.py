@@ -113,6 +113,25 @@ def test_a_braking_policys_tail_runs_in_the_plans_loop(bicycle):
         fit(system, 200, method="global").reach_covered(initial, plans, brake=(system.braking, 2))
 
 
+def test_a_policy_the_compiler_cannot_trace_runs_step_by_step_and_keeps_the_loop_for_plans(bicycle):
+    system, model = bicycle
+    x0, plans, _ = random_plans(system, n_plans=3, horizon=4)
+    initial = Zonotope.from_point(x0)
+
+    @torch.compiler.disable
+    def opaque(x):  # not traceable: a graph break, which a while_loop body does not allow
+        return system.braking(x)
+
+    eager = model.compile_steps(False).reach_covered(initial, plans, brake=(opaque, 3))
+    model.compile_steps(backend="aot_eager")
+    with pytest.warns(RuntimeWarning, match="plan loop with a braking policy's tail failed.*step by step"):
+        compiled = model.reach_covered(initial, plans, brake=(opaque, 3))
+    _assert_same(_sets_of(compiled), _sets_of(eager))
+    assert torch.equal(compiled[2], eager[2])
+    assert _step_of(model)._compiled_loop is not None  # plans without a policy still run as one loop
+    _assert_same(_sets_of(model.reach_covered(initial, eager[2])), _sets_of(eager))
+
+
 def _sets_of(result, batch=None):
     sets, covered = result[:2]
     return sets.center[:batch], sets.generators.abs().sum(-1)[:batch], covered[:batch]

@@ -84,6 +84,7 @@ class LocalStep:
             self._rotation_tables(model)
         # per use: steps and whole plans (checking), each without tangents and with them (linearisation)
         self._compiled = self._compiled_loop = None
+        self._brake_in_loop = True  # until a braking policy fails to compile in the loop
         if compile_kwargs is not None:
             step, tangent_step, loop, tangent_loop = step_functions or LocalStep.compiled_functions()
             self._compiled = tuple(torch.compile(types.MethodType(f, self), **inductor_kwargs(compile_kwargs))
@@ -177,13 +178,19 @@ class LocalStep:
         inputs = (center, generators, actions, *(tangents or ()))
         differentiable = torch.is_grad_enabled() and any(t.requires_grad for t in inputs)
         loop = self._compiled_loop[tangents is not None] if self._compiled_loop is not None else None
+        if brake is not None and not self._brake_in_loop:
+            loop = None
         steps = actions.shape[-2] + (brake[1] if brake else 0)
         if loop is not None and steps >= 2 and batch.numel() > 0 and not differentiable:
             try:
                 return self._run_compiled_loop(loop, batch, center, generators, actions, tangents, brake)
             except Exception as error:  # the compiler's failure must not stop a control loop
-                warn_fallback("the compiled reachable sets of a plan", error, instead="step by step")
-                self._compiled_loop = None
+                if brake is not None:  # e.g. a policy the compiler cannot trace: plans without one keep the loop
+                    warn_fallback("the compiled plan loop with a braking policy's tail", error, instead="step by step")
+                    self._brake_in_loop = False
+                else:
+                    warn_fallback("the compiled reachable sets of a plan", error, instead="step by step")
+                    self._compiled_loop = None
         covered = torch.ones(batch, dtype=torch.bool, device=center.device)
         centers, sets, moved, applied = [], [], [], []
         tangent, du = tangents if tangents is not None else (None, None)
