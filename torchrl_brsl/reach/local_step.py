@@ -221,8 +221,9 @@ class LocalStep:
         if tangents is not None:  # the action tangents travel with the actions: [..., T, m (1 + k)]
             du = tangents[1].expand(*batch, *tangents[1].shape[-3:])
             actions = torch.cat((actions.expand(*batch, *actions.shape[-2:]).unsqueeze(-1), du), dim=-1).flatten(-2)
-        plan_steps = torch.tensor(actions.shape[-2], device=center.device)
-        if brake is not None:  # placeholders for the tail's actions, which the loop computes
+        tail = ()
+        if brake is not None:  # the policy, where its steps start, and placeholders for the actions it computes
+            tail = (brake[0], torch.tensor(actions.shape[-2], device=center.device))
             actions = torch.cat((actions, actions.new_zeros(*actions.shape[:-2], brake[1], actions.shape[-1])), -2)
         horizon = actions.shape[-2]
         center, generators, actions, dc = self._compiled_inputs(
@@ -238,7 +239,7 @@ class LocalStep:
                     torch._dynamo.mark_dynamic(actions, 2)
                 out = loop(center, generators, actions, dc)
             else:
-                out = loop(center, generators, actions, None, *(() if brake is None else (brake[0], plan_steps)))
+                out = loop(center, generators, actions, None, *tail)
         shapes = ((n,), (n, width), (n, -1) if tangents is not None else (-1,))
         centers, sets, *extra = (t[:, :count].transpose(0, 1).reshape(*batch, horizon, *shape)
                                  for t, shape in zip((out[0], out[1], *out[3:]), shapes))

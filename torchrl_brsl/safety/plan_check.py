@@ -398,10 +398,7 @@ class PlanChecker:
 
     def brake(self, states: Tensor) -> Tensor:
         """The braking policy's action at ``states`` ``[..., n]`` as the robot receives it: ``[..., m]``."""
-        low, high = self.action_low, self.action_high
-        if low.dtype != states.dtype or low.device != states.device:
-            low, high = low.to(states), high.to(states)
-        return _brake_action(self.failsafe.actions, states, low, high, self.action_dtype)
+        return self._tail_brake(states)(states)
 
     def evaluate(self, x0: Tensor, plan: Tensor, obstacles: Obstacles) -> PlanEvaluation:
         """Verify a batch of plans from measured states.
