@@ -10,8 +10,8 @@ policy's derivative is not zero), where the constant brake makes every centre on
 (state, plan). Both reachability models are timed. ``--compile`` compiles them
 (``DataDrivenReach.compile_steps``): the global model's braking tails (one graph for the tail's
 rollout and one for its Jacobian chain, compiled in the untimed first steps), the local model's
-plans with the braking policy's tail in the same compiled loop (one graph per policy, compiled when
-the layer is built); ``--models`` picks the models.
+plans with the braking policy's tail in the same compiled loop, and the facet QP's linearisation along
+it (one graph each per policy, compiled when the layer is built); ``--models`` picks the models.
 
 Usage: ``python benchmarks/bench_failsafe.py [--quick] [--compile] [--models global,local]``
 """

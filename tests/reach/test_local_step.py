@@ -107,10 +107,48 @@ def test_a_braking_policys_tail_runs_in_the_plans_loop(bicycle):
     assert actions.shape == (5, 10, 2) and torch.equal(actions[:, :4], plans)
     torch.testing.assert_close(actions[:, 4:], system.braking(eager[0].center[:, 3:-1]), rtol=0, atol=0)
     _assert_same(_sets_of(model.reach_covered(initial, actions)), _sets_of(eager))
-    with pytest.raises(ValueError, match="brake.*tangents"):
+    with pytest.raises(ValueError, match="brake.*tangents.*tangent map"):
         model.reach_covered(initial, plans, (x0.new_zeros(5, 4, 1), plans.unsqueeze(-1)), brake=(system.braking, 2))
     with pytest.raises(ValueError, match="brake.*local model"):
         fit(system, 200, method="global").reach_covered(initial, plans, brake=(system.braking, 2))
+
+
+def test_a_braking_policys_tail_is_linearised_in_the_plans_loop(bicycle):
+    """``reach_covered(..., tangents, brake=(policy, steps, policy_tangent))``: compiled, one graph for every batch
+    with the eager directions, sets and actions; the tail's actions move with the centres (the policy's
+    derivative fed back), and without that feedback the directions differ."""
+    system, model = bicycle
+    x0, plans, _ = random_plans(system, n_plans=4, horizon=3)
+    gen = torch.Generator().manual_seed(3)
+    tangents = (torch.randn(4, 4, 2, generator=gen, dtype=x0.dtype), torch.randn(4, 3, 2, 2, generator=gen,
+                                                                                   dtype=x0.dtype))
+
+    def policy(x):  # a brake whose derivative is not zero
+        return torch.stack((-0.5 * x[..., 3], 0.2 * torch.sin(x[..., 2])), -1)
+
+    def policy_tangent(x, directions):  # exact: d policy / dx @ directions
+        rows = torch.zeros(*x.shape, 2, dtype=x.dtype)
+        rows[..., 3, 0], rows[..., 2, 1] = -0.5, 0.2 * torch.cos(x[..., 2])
+        return rows.transpose(-1, -2) @ directions
+
+    brake = (policy, 5, policy_tangent)
+    eager = model.compile_steps(False).reach_covered(Zonotope.from_point(x0), plans, tangents, brake)
+    model.compile_steps(backend="aot_eager")
+    frames = counters["frames"]["ok"]
+    for batch in (4, 2):
+        compiled = model.reach_covered(Zonotope.from_point(x0[:batch]), plans[:batch],
+                                       tuple(t[:batch] for t in tangents), brake)
+        _assert_same(_sets_of(compiled), _sets_of(eager, batch))
+        for new, old in zip(compiled[2:], eager[2:]):  # directions [B, 8, n, 2], actions [B, 8, 2]
+            torch.testing.assert_close(new, old[:batch], rtol=1e-9, atol=1e-12)
+    assert counters["frames"]["ok"] == frames + 1 and _step_of(model)._compiled_loop is not None
+    directions, actions = eager[2:]
+    assert directions.shape == (4, 8, 4, 2) and torch.equal(actions[:, :3], plans)
+    torch.testing.assert_close(actions[:, 3:], policy(eager[0].center[:, 2:-1]), rtol=0, atol=0)
+    open_loop = model.reach_covered(Zonotope.from_point(x0), actions, (tangents[0], torch.cat(
+        (tangents[1], tangents[1].new_zeros(4, 5, 2, 2)), 1)))[2]
+    torch.testing.assert_close(open_loop[:, :3], directions[:, :3], rtol=1e-12, atol=1e-14)  # the plan's steps
+    assert (open_loop[:, 3:] - directions[:, 3:]).abs().amax() > 1e-3  # the tail's feedback matters
 
 
 def test_a_policy_the_compiler_cannot_trace_runs_step_by_step_and_keeps_the_loop_for_plans(bicycle):

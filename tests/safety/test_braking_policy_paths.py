@@ -9,7 +9,7 @@ import torch
 
 from torchrl_brsl.reach import DataDrivenReach, DoubleIntegrator
 from torchrl_brsl.safety import FacetQPAdjuster, Failsafe, PlanChecker
-from torchrl_brsl.safety.adjust import _centre_jacobian, _feedback_jacobian
+from torchrl_brsl.safety.adjust import _brake_derivative, _centre_jacobian, _feedback_jacobian
 from torchrl_brsl.safety.plan_check import FUSE_FROM_STEPS
 
 from safety_support import assert_closed_form_matches_autograd, obstacles_of
@@ -53,6 +53,28 @@ def test_linearised_tail_matches_finite_differences(checker, plan_steps):
     exact = _feedback_jacobian(checker, centres, plan_steps)
     numeric = _centre_jacobian(checker, x0, plan).flatten(-2)
     torch.testing.assert_close(exact, numeric, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("precision", [torch.float64, torch.float32])
+def test_the_brake_tangent_is_the_policys_derivative(checker, precision):
+    """``PlanChecker.brake_tangent`` (central differences, what the local model's compiled loop can trace) is the
+    autograd derivative along the directions: zero where the bounds clip the action or a direction is zero;
+    to rounding for a float64 policy, to the float32 policy's step-size error otherwise."""
+    def policy(x):  # smooth, and beyond the bounds (+-1) at high speed
+        return 3.0 * torch.tanh(-x[..., 2:].to(precision) - 0.3 * x[..., :2].to(precision) ** 2)
+
+    smooth = PlanChecker(checker.reach, Failsafe(torch.zeros(2, dtype=D), N_BRK, policy=policy), N_PLAN + N_BRK,
+                         stop_dims=(2, 3), stop_slack=0.3, action_low=-torch.ones(2, dtype=D),
+                         action_high=torch.ones(2, dtype=D))
+    gen = torch.Generator().manual_seed(0)
+    states = torch.randn(64, 4, generator=gen, dtype=D) * torch.tensor([0.5, 0.5, 0.4, 0.4], dtype=D)
+    directions = torch.randn(64, 4, 3, generator=gen, dtype=D) * torch.tensor([1.0, 1e-3, 0.0])  # one column zero
+    raw = policy(states).to(D)
+    assert bool((raw.abs() > 1).any()) and bool((raw.abs() < 1).any())  # both sides of the bounds
+    expected = _brake_derivative(smooth, states) @ directions
+    tolerance = dict(rtol=1e-8, atol=1e-10) if precision == D else dict(rtol=2e-3, atol=2e-4)
+    torch.testing.assert_close(smooth.brake_tangent(states, directions), expected, **tolerance)
+    assert bool((expected[..., 0] != 0).any()) and bool((smooth.brake_tangent(states, directions)[..., 2] == 0).all())
 
 
 def test_saturated_tail_takes_the_open_loop_jacobian(checker):

@@ -355,7 +355,7 @@ class DataDrivenReach(nn.Module):
         return actions
 
     def reach_covered(self, initial: Zonotope, actions: Tensor, tangents: tuple[Tensor, Tensor] | None = None,
-                      brake: tuple[Callable[[Tensor], Tensor], int] | None = None
+                      brake: tuple | None = None
                       ) -> tuple[Zonotope, Tensor] | tuple[Zonotope, ...]:
         """:meth:`reach` and whether every step lies in the region the data cover.
 
@@ -372,11 +372,13 @@ class DataDrivenReach(nn.Module):
                 each step's leaf models and relaxations held fixed (a linearisation for the adjusters).
             brake: a local model only: ``(policy, steps)``, ``steps`` more steps after the plan, each under
                 ``policy(centre)`` (``[..., n] -> [..., m]``, e.g. a braking policy's actions as the robot
-                receives them), in the plan's compiled loop when the model is compiled.
+                receives them), in the plan's compiled loop when the model is compiled. With ``tangents``,
+                ``(policy, steps, policy_tangent)``: ``policy_tangent(centre [..., n], directions [..., n, k])``
+                maps the centre's directions to the action's ``[..., m, k]``.
 
         Returns:
             ``(sets [..., H], covered [...])``; with ``tangents`` also the centres' directions
-            ``[..., H, n, k]``; with ``brake`` also every step's action ``[..., H + steps, m]`` (and
+            ``[..., H, n, k]``; with ``brake`` also (last) every step's action ``[..., H + steps, m]`` (and
             ``H + steps`` sets).
         """
         actions = self._check_reach_args(initial, actions)
@@ -419,14 +421,13 @@ class DataDrivenReach(nn.Module):
         rounding difference can flip a discrete choice, a leaf or the columns Girard's reduction
         keeps: on the Turtlebot's 6-D model, random plans' radii differed by up to 4 %; both are
         sound bounds of their inputs). A plan's sets without
-        gradients (checking, with a braking policy's tail too, and the facet QP's linearisation with
-        the constant brake) run as one compiled loop, 7-9x faster than eager at batch 1; single steps
-        (gradients, the linearisation along a braking policy) 2-5x
+        gradients (checking and both adjusters' linearisation, with a braking policy's tail too) run as
+        one compiled loop, 7-9x faster than eager at batch 1; single steps (gradients) 2-5x
         (``benchmarks/bench_compiled_step.py``). The warm-up's four graphs take
         about a minute per model on a 2-core CPU, in every process: the plan's loops are not served
         by the on-disk cache. ``warm_up`` compiles the checking and the linearisation graphs here, on two
         offline states, so that no control step stalls on it (the graphs of gradients through the
-        steps, for the gradient adjuster, compile on first use). A global model's steps are one
+        steps, which the adjusters take only for obstacles checked by the LP, compile on first use). A global model's steps are one
         affine map and stay eager: it records the choice for the rollout of a braking policy's tail
         (:class:`~torchrl_brsl.safety.PlanChecker`), which follows it (:attr:`compile_options`).
 

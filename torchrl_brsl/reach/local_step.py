@@ -164,16 +164,17 @@ class LocalStep:
             brake: optional ``(policy, steps)``: after the plan, ``steps`` more steps under ``policy(centre)``
                 (``[..., n] -> [..., m]``, the action the robot receives at each set's centre: a braking
                 policy's tail), in the same loop when compiled (the policy must then be traceable, else
-                the plan runs step by step); not with ``tangents``.
+                the plan runs step by step). With ``tangents``, ``(policy, steps, policy_tangent)``:
+                ``policy_tangent(centre [..., n], directions [..., n, k])`` gives the tail action's directions
+                ``[..., m, k]`` (e.g. :meth:`~torchrl_brsl.safety.PlanChecker.brake_tangent`).
 
         Returns:
             ``(sets [..., T], covered [...])``: ``covered`` if every step is; with ``tangents``, also
-            the centres' directions ``[..., T, n, k]``; with ``brake``, also every step's action ``[..., T, m]``
-            (``T = P + steps``).
+            the centres' directions ``[..., T, n, k]``; with ``brake``, also (last) every step's action
+            ``[..., T, m]`` (``T = P + steps``).
         """
-        if brake is not None and tangents is not None:
-            raise ValueError("`brake` and `tangents` cannot be combined: a braking policy's tail is linearised "
-                             "step by step")
+        if brake is not None and tangents is not None and len(brake) < 3:
+            raise ValueError("`brake` with `tangents` needs the policy's tangent map: (policy, steps, policy_tangent)")
         batch = torch.broadcast_shapes(center.shape[:-1], generators.shape[:-2], actions.shape[:-2])
         inputs = (center, generators, actions, *(tangents or ()))
         differentiable = torch.is_grad_enabled() and any(t.requires_grad for t in inputs)
@@ -200,16 +201,17 @@ class LocalStep:
             if tangents is None:
                 center, generators, inside = self(center, generators, action)
             else:
-                center, generators, inside, tangent = self(center, generators, action, (tangent, du[..., j, :, :]))
+                action_tangent = du[..., j, :, :] if j < len(plan) else brake[2](center, tangent)
+                center, generators, inside, tangent = self(center, generators, action, (tangent, action_tangent))
                 moved.append(tangent)
             covered = covered & inside
             centers.append(center)
             sets.append(generators)
             applied.append(action)
         result = (stack_steps(centers, sets), covered)
-        if brake is not None:
-            return (*result, torch.stack(applied, -2))
-        return result if tangents is None else (*result, torch.stack(moved, -3))
+        if tangents is not None:
+            result += (torch.stack(moved, -3),)
+        return result if brake is None else (*result, torch.stack(applied, -2))
 
     def _run_compiled_loop(self, loop, batch: torch.Size, center: Tensor, generators: Tensor, actions: Tensor,
                            tangents: tuple[Tensor, Tensor] | None,
@@ -223,7 +225,8 @@ class LocalStep:
             actions = torch.cat((actions.expand(*batch, *actions.shape[-2:]).unsqueeze(-1), du), dim=-1).flatten(-2)
         tail = ()
         if brake is not None:  # the policy, where its steps start, and placeholders for the actions it computes
-            tail = (brake[0], torch.tensor(actions.shape[-2], device=center.device))
+            tail = (brake[0], torch.tensor(actions.shape[-2], device=center.device),
+                    brake[2] if tangents is not None else None)
             actions = torch.cat((actions, actions.new_zeros(*actions.shape[:-2], brake[1], actions.shape[-1])), -2)
         horizon = actions.shape[-2]
         center, generators, actions, dc = self._compiled_inputs(
@@ -237,10 +240,10 @@ class LocalStep:
                 if k >= 2:
                     torch._dynamo.mark_dynamic(dc, 2)
                     torch._dynamo.mark_dynamic(actions, 2)
-                out = loop(center, generators, actions, dc)
+                out = loop(center, generators, actions, dc, *tail)
             else:
                 out = loop(center, generators, actions, None, *tail)
-        shapes = ((n,), (n, width), (n, -1) if tangents is not None else (-1,))
+        shapes = ((n,), (n, width)) + (((n, -1),) if tangents is not None else ()) + (((-1,),) if tail else ())
         centers, sets, *extra = (t[:, :count].transpose(0, 1).reshape(*batch, horizon, *shape)
                                  for t, shape in zip((out[0], out[1], *out[3:]), shapes))
         with skip_value_checks():  # finite by construction
@@ -248,15 +251,17 @@ class LocalStep:
         return result + tuple(extra)
 
     def _loop(self, center: Tensor, generators: Tensor, actions: Tensor, tangent: Tensor | None = None,
-              policy: Callable[[Tensor], Tensor] | None = None, plan_steps: Tensor | None = None) -> tuple[Tensor, ...]:
+              policy: Callable[[Tensor], Tensor] | None = None, plan_steps: Tensor | None = None,
+              policy_tangent: Callable[[Tensor, Tensor], Tensor] | None = None) -> tuple[Tensor, ...]:
         """:meth:`_step` over a plan as one ``while_loop``, traced as one graph when compiled: ``center [B, n]``,
         ``generators [B, n, max_generators]``, ``actions [T, B, m]`` to ``(centers [T, B, n], generators
         [T, B, n, max_generators], covered [B])``. With ``tangent`` ``[B, n, k]`` (the initial centre's
         directions), ``actions`` is ``[T, B, m (1 + k)]``, each action followed by its directions, and
-        the centres' directions ``[T, B, n, k]`` come last. With ``policy``, the steps from ``plan_steps``
-        (a 0-d tensor) on take ``policy(centre)`` instead of their row of ``actions``, and the actions taken
-        ``[T, B, m]`` come last. The body has no side effects and keeps its carry's shapes (the step
-        reduces to ``max_generators`` columns)."""
+        the centres' directions ``[T, B, n, k]`` follow. With ``policy``, the steps from ``plan_steps``
+        (a 0-d tensor) on take ``policy(centre)`` instead of their row of ``actions`` (and with ``tangent``
+        ``policy_tangent(centre, directions)`` instead of its directions), and the actions taken ``[T, B, m]``
+        come last. The body has no side effects and keeps its carry's shapes (the step reduces to
+        ``max_generators`` columns)."""
         horizon, m = actions.shape[0], self.widths[1]
 
         def more(i: Tensor, *_) -> Tensor:
@@ -266,16 +271,21 @@ class LocalStep:
                  *extra: Tensor):
             at = i.reshape(1)
             action = actions.index_select(0, at).squeeze(0)
+            if tangent is not None:
+                action = action.unflatten(-1, (m, -1))
+                action, action_tangent = action[..., 0], action[..., 1:]
+            if policy is not None:
+                in_plan = i < plan_steps
+                action = torch.where(in_plan, action, policy(center))
+                extra = (*extra[:-1], extra[-1].index_copy(0, at, action.unsqueeze(0)))
+                if tangent is not None:
+                    action_tangent = torch.where(in_plan, action_tangent, policy_tangent(center, extra[0]))
             if tangent is None:
-                if policy is not None:
-                    action = torch.where(i < plan_steps, action, policy(center))
-                    extra = (extra[0].index_copy(0, at, action.unsqueeze(0)),)
                 center, generators, inside = self._step(center, generators, action, None)
             else:
-                action = action.unflatten(-1, (m, -1))
-                center, generators, inside, direction = self._step(center, generators, action[..., 0],
-                                                                   (extra[0], action[..., 1:]))
-                extra = (direction, extra[1].index_copy(0, at, direction.unsqueeze(0)))
+                center, generators, inside, direction = self._step(center, generators, action,
+                                                                   (extra[0], action_tangent))
+                extra = (direction, extra[1].index_copy(0, at, direction.unsqueeze(0)), *extra[2:])
             return (i + 1, center, generators, covered & inside, centers.index_copy(0, at, center.unsqueeze(0)),
                     sets.index_copy(0, at, generators.unsqueeze(0)), *extra)
 
@@ -284,10 +294,10 @@ class LocalStep:
                  center.new_zeros(horizon, *center.shape), generators.new_zeros(horizon, *generators.shape))
         if tangent is not None:
             start += (tangent, tangent.new_zeros(horizon, *tangent.shape))
-        elif policy is not None:
-            start += (actions.new_zeros(horizon, *actions.shape[1:]),)
+        if policy is not None:
+            start += (center.new_zeros(horizon, center.shape[0], m),)
         _, _, _, covered, centers, sets, *extra = while_loop(more, step, start)
-        return (centers, sets, covered, *extra[-1:])
+        return (centers, sets, covered, *extra[tangent is not None:])
 
     def _run_compiled(self, center: Tensor, generators: Tensor, action: Tensor,
                       tangents: tuple[Tensor, Tensor] | None) -> tuple[Tensor, ...]:

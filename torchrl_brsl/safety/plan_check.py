@@ -360,15 +360,19 @@ class PlanChecker:
             self._memo[("eager", function)] = True
             return function(batch, *args)
 
-    def rollout_sets(self, x0: Tensor, plan: Tensor) -> tuple[Tensor, Zonotope, Tensor]:
+    def rollout_sets(self, x0: Tensor, plan: Tensor, tangents: tuple[Tensor, Tensor] | None = None) -> tuple:
         """Reachable sets of ``plan`` followed by braking up to the horizon (a local model).
 
         Args:
             x0: ``[B, n]`` measured states.
             plan: ``[B, P, m]`` with ``P <= T``.
+            tangents: optional ``(dx [B, n, k], du [B, P, m, k])``, directions of the state and the plan,
+                mapped to the centres' to first order (:meth:`DataDrivenReach.reach_covered`), a braking
+                policy's tail with :meth:`brake_tangent`.
 
         Returns:
-            ``(actions [B, T, m], sets [B, T], covered [B])``; differentiable w.r.t. ``plan``.
+            ``(actions [B, T, m], sets [B, T], covered [B])``, differentiable w.r.t. ``plan``; with
+            ``tangents`` also the centres' directions ``[B, T, n, k]``.
         """
         n_tail = self.horizon - plan.shape[-2]
         if n_tail < 0:
@@ -376,10 +380,13 @@ class PlanChecker:
         initial = Zonotope.from_point(x0.to(plan.dtype))
         if self.failsafe.policy is None:
             actions = torch.cat((plan, self.hold(plan).expand(plan.shape[0], n_tail, -1)), dim=1)
-            sets, covered = self.reach.reach_covered(initial, actions)
-            return actions, sets, covered
-        sets, covered, actions = self.reach.reach_covered(initial, plan, brake=(self._tail_brake(plan), n_tail))
-        return actions, sets, covered
+            if tangents is not None:  # the constant brake's actions do not move
+                du = tangents[1]
+                tangents = (tangents[0], torch.cat((du, du.new_zeros(*du.shape[:-3], n_tail, *du.shape[-2:])), -3))
+            return (actions, *self.reach.reach_covered(initial, actions, tangents))
+        brake = (self._tail_brake(plan), n_tail) + ((self._tail_brake_tangent(plan),) if tangents is not None else ())
+        *result, actions = self.reach.reach_covered(initial, plan, tangents, brake)
+        return (actions, *result)
 
     def _tail_brake(self, like: Tensor) -> Callable[[Tensor], Tensor]:
         """:meth:`brake` as one function per dtype and device, kept in the memo the checker's subsets share: the
@@ -389,6 +396,24 @@ class PlanChecker:
             policy, action_dtype = self.failsafe.actions, self.action_dtype
             return lambda states: _brake_action(policy, states, low, high, action_dtype)
         return self.memo(("tail brake", like.dtype, like.device), build)
+
+    def brake_tangent(self, states: Tensor, directions: Tensor) -> Tensor:
+        """The braking action's derivative at ``states`` ``[..., n]`` along ``directions`` ``[..., n, k]``:
+        ``[..., m, k]``, zero where the action is clipped to the bounds.
+
+        By central differences of the policy (step ``eps^(1/3) (1 + |x|)``, ``eps`` of the policy's output
+        dtype), so that it traces into the local model's compiled plan loop, which cannot differentiate
+        (:meth:`~torchrl_brsl.reach.DataDrivenReach.reach_covered`); a float64 policy's derivative to about
+        ``1e-10`` where it is smooth. The adjusters only linearise with it: every plan is checked exactly.
+        """
+        return self._tail_brake_tangent(states)(states, directions)
+
+    def _tail_brake_tangent(self, like: Tensor) -> Callable[[Tensor, Tensor], Tensor]:
+        """:meth:`brake_tangent` as one function per dtype and device (as :meth:`_tail_brake`)."""
+        def build() -> Callable[[Tensor, Tensor], Tensor]:
+            low, high, policy = self.action_low.to(like), self.action_high.to(like), self.failsafe.policy
+            return lambda states, directions: _brake_tangent(policy, states, directions, low, high)
+        return self.memo(("tail brake tangent", like.dtype, like.device), build)
 
     def hold(self, like: Tensor) -> Tensor:
         """The open-loop braking action as the robot receives it (clipped to the bounds, rounded to the
@@ -552,6 +577,23 @@ def _brake_action(policy: Callable[[Tensor], Tensor], states: Tensor, low: Tenso
     in the dtype of ``states`` ``[..., n]``: ``[..., m]``."""
     brake = torch.clamp(policy(states).to(states.dtype), low, high)
     return brake if action_dtype == brake.dtype else brake.to(action_dtype).to(states.dtype)
+
+
+def _brake_tangent(policy: Callable[[Tensor], Tensor], states: Tensor, directions: Tensor, low: Tensor,
+                   high: Tensor) -> Tensor:
+    """:meth:`PlanChecker.brake_tangent` of ``policy``: central differences along each column of ``directions``
+    ``[..., n, k]`` scaled to a step of ``eps^(1/3) (1 + |states|_inf)``; ``[..., m, k]``."""
+    raw = policy(states)  # [..., m]
+    step = torch.finfo(raw.dtype).eps ** (1 / 3) * (1 + states.abs().amax(-1, keepdim=True))  # [..., 1]
+    columns = directions.transpose(-1, -2)  # [..., k, n]
+    size = columns.abs().amax(-1, keepdim=True)
+    scale = step.unsqueeze(-1) / torch.where(size > 0, size, torch.ones_like(size))  # [..., k, 1]
+    shift = scale * columns
+    points = torch.stack((states.unsqueeze(-2) + shift, states.unsqueeze(-2) - shift))  # [2, ..., k, n]
+    ahead, behind = policy(points).to(states.dtype).unbind(0)  # [..., k, m]
+    raw = raw.to(states.dtype)
+    unclipped = (raw > low) & (raw < high)  # [..., m]
+    return ((ahead - behind) / (2 * scale)).transpose(-1, -2) * unclipped.unsqueeze(-1)
 
 
 def _policy_tail(center: Tensor, policy: Callable[[Tensor], Tensor], A_T: Tensor, B_T: Tensor, k: Tensor,
