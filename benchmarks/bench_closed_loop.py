@@ -5,10 +5,10 @@ without the layer, the shares of steps with intervention, failsafe, ``unverified
 ``out_of_data``, the median position radius of the final reachable set of the executed
 plans, and the layer's median time per batched call (after ``N_WARMUP`` calls, which include
 any compilation: ``--compile`` runs the local models' steps compiled). One-action proposals (``n_plan = 1``) then the task's braking steps (``--n-brk`` for
-the uncapped servos), stop slack 0.15, the facet-QP adjuster, ``--steps`` offline transitions.
+the uncapped servos), stop slack 0.15, the facet-QP adjuster (``--adjuster``), ``--steps`` offline transitions.
 
 Usage: ``python benchmarks/bench_closed_loop.py [--task point_boxes] [--robot kinematic] [--steps 1000]
-[--episodes 40] [--servo capped|uncapped|both] [--models global,local,body] [--compile]``
+[--episodes 40] [--servo capped|uncapped|both] [--models global,local,body] [--compile] [--adjuster facet_qp]``
 """
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ from torchrl.envs import SerialEnv, TransformedEnv
 
 import envs
 from torchrl_brsl.reach import BodyFrame, DataDrivenReach, collect_offline_data
-from torchrl_brsl.safety import BRSLSafetyLayer, Failsafe
+from torchrl_brsl.safety import ADJUSTERS, BRSLSafetyLayer, Failsafe
 from torchrl_brsl.sets import Zonotope
 
 N_ENVS = 10
@@ -29,7 +29,8 @@ N_WARMUP = 20
 UNCAPPED = {"diffdrive_nav": {"max_acceleration": None, "max_turn_acceleration": None}}
 
 
-def run(task: str, options: dict, reach: DataDrivenReach | None, n_brk: int, episodes: int, episode: int) -> dict:
+def run(task: str, options: dict, reach: DataDrivenReach | None, n_brk: int, episodes: int, episode: int,
+        adjuster: str = "facet_qp") -> dict:
     info = envs.safety_info(task, robot=options.get("robot", "kinematic"))
     base = SerialEnv(N_ENVS, [functools.partial(envs.make, task, seed=100 + i, episode_steps=episode, **options)
                               for i in range(N_ENVS)])
@@ -37,7 +38,7 @@ def run(task: str, options: dict, reach: DataDrivenReach | None, n_brk: int, epi
     if reach is not None:
         layer = BRSLSafetyLayer(reach, Failsafe(info.braking_action, n_brk), 1, stop_dims=info.velocity_dims,
                                 stop_slack=0.15, action_low=info.action_low, action_high=info.action_high,
-                                adjuster="facet_qp")
+                                adjuster=adjuster)
         env = TransformedEnv(base, layer)
     torch.manual_seed(0)
     td = env.reset()
@@ -94,6 +95,7 @@ def main() -> None:
     parser.add_argument("--models", default="global,local,body",
                         help="comma-separated: global, local, body (local in the body frame, robots with a heading)")
     parser.add_argument("--compile", action="store_true", help="compiled steps of the local models (compile_steps)")
+    parser.add_argument("--adjuster", choices=sorted(ADJUSTERS), default="facet_qp")
     args = parser.parse_args()
     torch.set_num_threads(1)
     task = args.task
@@ -118,7 +120,7 @@ def main() -> None:
                                               body_frame=frame)
             if args.compile and reach.plan_dependent:
                 reach.compile_steps()
-            row = run(task, options, reach, n_brk, args.episodes, args.episode_steps)
+            row = run(task, options, reach, n_brk, args.episodes, args.episode_steps, args.adjuster)
             print(f"{servo:<10}{method:<8}{row['collisions']:>6}/{row['episodes']:<5}{row['speed']:>8.3f}"
                   f"{row['speed'] / free['speed']:>9.2f}{row['intervened']:>9.2f}{row['failsafe']:>9.2f}"
                   f"{row['hold']:>7.2f}{row['out_of_data']:>9.2f}{row['radius']:>8.3f}{row['ms']:>9.1f}", flush=True)

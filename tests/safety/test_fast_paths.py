@@ -1,13 +1,17 @@
 """The affine fast paths of plan verification and adjustment agree with the general ones."""
+import copy
+
 import numpy as np
 import pytest
 import torch
 from scipy.optimize import nnls
+from torch._dynamo.utils import counters
 
 from torchrl_brsl.collision import ZonotopeCollisionChecker
 from torchrl_brsl.reach import DataDrivenReach, DoubleIntegrator, KinematicBicycle
-from torchrl_brsl.safety import FacetQPAdjuster, Failsafe, GradientAdjuster, PlanChecker
-from torchrl_brsl.safety.adjust import _centre_jacobian, _leaf_rollout, _project_polytope
+from torchrl_brsl.safety import FacetQPAdjuster, Failsafe, GradientAdjuster, PlanChecker, SafetyDecision
+from torchrl_brsl.safety.adjust import _centre_jacobian, _closed_form_gradient, _leaf_rollout, _project_polytope
+from torchrl_brsl.sets import Zonotope
 
 from safety_support import assert_closed_form_matches_autograd, obstacles_of
 
@@ -227,6 +231,54 @@ def test_leaf_jacobian_of_a_local_model_matches_finite_differences(policy):
     x0, plan = bicycle.sample_states(8, gen) * 0.3, bicycle.sample_actions(8, N_PLAN, generator=gen) * 0.5
     torch.testing.assert_close(_leaf_rollout(checker, x0, plan)[-1][:, 0], _centre_jacobian(checker, x0, plan)[:, 0],
                                rtol=1e-4, atol=1e-5)
+
+
+@pytest.mark.parametrize("policy", [False, True])
+def test_the_gradient_on_a_local_model_chains_the_loss_through_the_leaf_jacobian(policy):
+    """The projected gradient's closed form on a local model is autograd's gradient of its loss in the centres (the
+    sets' generators held fixed), chained with the centres' Jacobian along the plan's sets (:func:`_leaf_rollout`,
+    which the tests above check against finite differences): one rollout with tangents per iteration."""
+    bicycle, checker = bicycle_checker(policy)
+    gen = torch.Generator().manual_seed(4)
+    x0, plan = bicycle.sample_states(3, gen) * 0.3, bicycle.sample_actions(3, N_PLAN, generator=gen) * 0.5
+    obstacles, threshold = obstacles_of(*scene()[2:]), 50.0  # every finite value below it: a gradient from each
+    with torch.no_grad():
+        actions, sets, covered, jacobian = _leaf_rollout(checker, x0, plan)
+        evaluation, gauge = checker.evaluate_with_gauge(x0, plan, obstacles, rollout=(actions, sets, covered))
+    jacobian = jacobian.flatten(-2)  # [B, T, n, N]
+    closed = _closed_form_gradient(checker, evaluation, gauge, jacobian[:, :, checker.position_dims],
+                                   jacobian[:, -1, checker.stop_dims], threshold)
+    centers = sets.center.clone().requires_grad_(True)
+    evaluated = checker.evaluate_with_gauge(x0, plan, obstacles, rollout=(actions, Zonotope(centers, sets.generators),
+                                                                          covered))[0]
+    values, stop_excess = evaluated.values, evaluated.stop_excess
+    assert bool(((values < threshold) & (values > 0)).any()) and (policy or bool((stop_excess > 0).any()))
+    loss = torch.relu(threshold - torch.nan_to_num(values, posinf=1e6)).sum((-1, -2)) + torch.relu(stop_excess)
+    (in_centres,) = torch.autograd.grad(loss.sum(), centers)  # [B, T, n]
+    torch.testing.assert_close(closed, torch.einsum("btn,btnk->bk", in_centres, jacobian), rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.filterwarnings("error::RuntimeWarning")  # no fallback to eager
+def test_facet_qp_prepares_its_compiled_linearisation_along_a_braking_policy():
+    """With a compiled local model and a braking policy, the linearisation runs in the plan's compiled loop with the
+    eager values, and its graph is compiled when the decision is built (``FacetQPAdjuster.prepare``), not at a
+    control step."""
+    bicycle, eager = bicycle_checker(policy=True)
+    reach = copy.deepcopy(eager.reach).compile_steps(backend="aot_eager")
+    checker = PlanChecker(reach, eager.failsafe, eager.horizon, stop_dims=(3,), stop_slack=0.1,
+                          action_low=bicycle.action_low, action_high=bicycle.action_high)
+    SafetyDecision(checker, checker.failsafe, FacetQPAdjuster())
+    frames = counters["frames"]["ok"]
+    gen = torch.Generator().manual_seed(2)
+    for n_envs, steps in ((3, N_PLAN), (1, 1)):
+        x0 = bicycle.sample_states(n_envs, gen) * 0.3
+        plan = bicycle.sample_actions(n_envs, steps, generator=gen) * 0.5
+        (actions, sets, *rest), expected = _leaf_rollout(checker, x0, plan), _leaf_rollout(eager, x0, plan)
+        radii = (sets.generators.abs().sum(-1), expected[1].generators.abs().sum(-1))  # the columns' order may differ
+        for got, want in zip((actions, sets.center, radii[0], *rest), (expected[0], expected[1].center, radii[1],
+                                                                        *expected[2:])):
+            torch.testing.assert_close(got, want, rtol=1e-9, atol=1e-12)
+    assert counters["frames"]["ok"] == frames  # compiled when the decision was built
 
 
 @pytest.mark.parametrize("policy", [False, True])

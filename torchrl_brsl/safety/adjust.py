@@ -7,8 +7,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchrl_brsl.reach import stack_steps
-from torchrl_brsl.safety.plan_check import AffineRollout, PlanChecker, PlanEvaluation
+from torchrl_brsl.safety.plan_check import AffineRollout, Gauge, PlanChecker, PlanEvaluation
 from torchrl_brsl.sets import Obstacles, Zonotope
 
 
@@ -37,7 +36,12 @@ class GradientAdjuster:
     are safe, after ``max_iterations``, or when the time budget runs out. On a global model
     the gradient is in closed form: with the constant brake from the affine rollout, with a
     braking policy from the tail linearised along the current nominal rollout (the same
-    gradient as autograd, without its graph); a local model's gradient is by autograd.
+    gradient as autograd, without its graph). On a local model, whose sets' sizes also depend
+    on the plan, it is the gradient through the centres with the sets' generators held fixed
+    (eq. (11) as the paper states it), each centre's Jacobian taken along the rollout that checks
+    the plan with each step's leaf models and relaxations held fixed (:meth:`PlanChecker.rollout_sets`
+    with tangents: one compiled loop when compiled, where autograd ran compiled steps forward and
+    backward, 5x slower). Obstacles checked by the LP: autograd.
 
     Args:
         max_iterations: gradient steps at most.
@@ -62,20 +66,28 @@ class GradientAdjuster:
         self.target_margin = float(target_margin)
         self.time_budget = time_budget
 
+    def prepare(self, checker: PlanChecker) -> None:
+        """Compile what this adjuster runs on ``checker`` now, not at its first control step
+        (:func:`prepare_linearisation`); :class:`~torchrl_brsl.safety.SafetyDecision` calls it for its checkers."""
+        prepare_linearisation(checker)
+
     def __call__(self, checker: PlanChecker, x0: Tensor, plan: Tensor, obstacles: Obstacles,
                  start: float | None = None, reference: Tensor | None = None) -> Adjustment:
         """Adjust ``plan`` ``[B, P, m]``; ``reference`` (the previous safe plan) is not used."""
         start = time.perf_counter() if start is None else start
         if checker.uses_lp(obstacles):  # the LP's values have no facets: gradients by autograd through it
             return self._autograd(checker, x0, plan, obstacles, start)
-        affine = checker.affine_for(x0, plan) if self._analytic and not plan.requires_grad else None
-        if affine is None:
-            if self._analytic and not plan.requires_grad and _feedback_linearisable(checker, x0, plan):
-                with torch.no_grad():
-                    return self._feedback_steps(checker, x0, plan, obstacles, start)
+        if not self._analytic or plan.requires_grad:
             return self._autograd(checker, x0, plan, obstacles, start)
+        affine = checker.affine_for(x0, plan)
         with torch.no_grad():
-            return self._analytic_steps(checker, affine, x0, plan, obstacles, start)
+            if affine is not None:
+                return self._analytic_steps(checker, affine, x0, plan, obstacles, start)
+            if _feedback_linearisable(checker, x0, plan):
+                return self._feedback_steps(checker, x0, plan, obstacles, start)
+            if checker.plan_dependent and x0.ndim == 2 and plan.ndim == 3:
+                return self._leaf_steps(checker, x0, plan, obstacles, start)
+        return self._autograd(checker, x0, plan, obstacles, start)
 
     _analytic = True  # closed-form gradients when the centres are affine in the plan
 
@@ -112,17 +124,14 @@ class GradientAdjuster:
 
     def _analytic_steps(self, checker: PlanChecker, affine: AffineRollout, x0: Tensor, plan: Tensor,
                         obstacles: Obstacles, start: float) -> Adjustment:
-        """The same iteration with the gradient in closed form (open-loop braking).
+        """The same iteration with the gradient in closed form (:func:`_closed_form_gradient`; open-loop braking,
+        the centres' Jacobian exact and constant). Every iterate is still checked exactly by
+        :meth:`PlanChecker.evaluate`."""
+        def linearise(plan: Tensor) -> tuple:
+            evaluation, gauge = checker.evaluate_with_gauge(x0, plan, obstacles)
+            return evaluation, gauge, lambda: (affine.position_jacobian, affine.stop_jacobian)
 
-        A value ``v = |w_f* . (c_o - p)|`` (facet ``f*`` attaining the gauge) has gradient
-        ``-sign(w_f* . (c_o - p)) w_f* J`` in the plan, with ``J`` the (exact, constant)
-        Jacobian of the position ``p`` of its set; likewise the stop excess through the final
-        centre. Every iterate is still checked exactly by :meth:`PlanChecker.evaluate`.
-        """
-        def jacobians(evaluation: PlanEvaluation) -> tuple[Tensor, Tensor]:
-            return affine.position_jacobian, affine.stop_jacobian
-
-        return self._closed_form_steps(checker, jacobians, x0, plan, obstacles, start)
+        return self._closed_form_steps(checker, linearise, plan, start)
 
     def _feedback_steps(self, checker: PlanChecker, x0: Tensor, plan: Tensor, obstacles: Obstacles,
                         start: float) -> Adjustment:
@@ -133,40 +142,64 @@ class GradientAdjuster:
         (``Dπ`` from one batched backward pass per action dim, zero where the brake is clipped),
         which is the exact gradient of the tail as rolled out. Every iterate is checked exactly.
         """
-        def jacobians(evaluation: PlanEvaluation) -> tuple[Tensor, Tensor]:
-            jacobian = _feedback_jacobian(checker, evaluation.centers, plan.shape[1])  # [B, T, n, N]
-            return jacobian[:, :, checker.position_dims], jacobian[:, -1, checker.stop_dims]
+        def linearise(plan: Tensor) -> tuple:
+            evaluation, gauge = checker.evaluate_with_gauge(x0, plan, obstacles)
 
-        return self._closed_form_steps(checker, jacobians, x0, plan, obstacles, start)
+            def jacobians() -> tuple[Tensor, Tensor]:
+                jacobian = _feedback_jacobian(checker, evaluation.centers, plan.shape[1])  # [B, T, n, N]
+                return jacobian[:, :, checker.position_dims], jacobian[:, -1, checker.stop_dims]
+            return evaluation, gauge, jacobians
 
-    def _closed_form_steps(self, checker: PlanChecker, jacobians, x0: Tensor, plan: Tensor, obstacles: Obstacles,
-                           start: float) -> Adjustment:
-        """Projected steps with the gradient assembled from ``jacobians(evaluation)``: the
-        positions' ``[(B,) T, d, N]`` and the final stop dims' ``[(B,) s, N]`` Jacobians in the plan."""
+        return self._closed_form_steps(checker, linearise, plan, start)
+
+    def _leaf_steps(self, checker: PlanChecker, x0: Tensor, plan: Tensor, obstacles: Obstacles,
+                    start: float) -> Adjustment:
+        """The iteration of :meth:`_analytic_steps` on a local model: the centres' Jacobian along the plan's own
+        sets (:func:`_leaf_rollout`, the sets' generators held fixed), from the rollout that checks it."""
+        def linearise(plan: Tensor) -> tuple:
+            *rollout, jacobian = _leaf_rollout(checker, x0, plan)  # [B, T, n, P, m]
+            evaluation, gauge = checker.evaluate_with_gauge(x0, plan, obstacles, rollout=tuple(rollout))
+            jacobian = jacobian.flatten(-2)
+            return evaluation, gauge, lambda: (jacobian[:, :, checker.position_dims], jacobian[:, -1, checker.stop_dims])
+
+        return self._closed_form_steps(checker, linearise, plan, start)
+
+    def _closed_form_steps(self, checker: PlanChecker, linearise, plan: Tensor, start: float) -> Adjustment:
+        """Projected steps with the gradient from ``linearise(plan)``: ``(evaluation, gauge, jacobians)``, where
+        ``jacobians()`` gives the positions' ``[(B,) T, d, N]`` and the final stop dims' ``[(B,) s, N]``
+        Jacobians in the plan (:func:`_closed_form_gradient`)."""
         low, high = checker.action_low, checker.action_high
         scale = (high - low).clamp_min(1e-12)
         iterations = torch.zeros(plan.shape[0], dtype=torch.long, device=plan.device)
-        threshold = 1 + self.target_margin
         for iteration in range(self.max_iterations + 1):
-            evaluation, gauge = checker.evaluate_with_gauge(x0, plan, obstacles)
+            evaluation, gauge, jacobians = linearise(plan)
             active = ~evaluation.safe
             out_of_time = self.time_budget is not None and time.perf_counter() - start > self.time_budget
             if iteration == self.max_iterations or out_of_time or not bool(active.any()):
                 break
-            position_jacobian, stop_jacobian = jacobians(evaluation)
-            values = evaluation.values  # masked: inf; non-finite: 0 (no gradient, as with autograd)
-            coef = torch.where((values < threshold) & (values > 0), gauge.picked.sign(), 0.0)  # [B, T, K]
-            per_step = (coef.unsqueeze(-2) @ gauge.weights).squeeze(-2)  # [B, T, d]
-            grad = (per_step.flatten(1).unsqueeze(1) @ position_jacobian.flatten(-3, -2)).squeeze(1)  # [B, N]
-            if checker.stop_dims:
-                final = _stop_centres(checker, evaluation.centers)  # [B, s]
-                excess = evaluation.stop_excess.unsqueeze(-1)
-                attains = (final.abs() - evaluation.stop_room) == excess  # amax: shared equally between ties
-                share = attains * (final.sign() * (excess > 0)) / attains.sum(-1, keepdim=True).clamp_min(1)
-                grad = grad + (share.unsqueeze(1) @ stop_jacobian).squeeze(1)
+            grad = _closed_form_gradient(checker, evaluation, gauge, *jacobians(), 1 + self.target_margin)
             plan = self._step(plan, grad.view_as(plan), active, low, high, scale)
             iterations += active.long()
         return Adjustment(plan, evaluation, iterations)
+
+
+def _closed_form_gradient(checker: PlanChecker, evaluation: PlanEvaluation, gauge: Gauge, position_jacobian: Tensor,
+                          stop_jacobian: Tensor, threshold: float) -> Tensor:
+    """The gradient in the plan ``[B, N]`` of :class:`GradientAdjuster`'s loss (the colliding values' shortfall
+    below ``threshold`` and the stop excess): a value ``v = |w_f* . (c_o - p)|`` (facet ``f*`` attaining the gauge)
+    has gradient ``-sign(w_f* . (c_o - p)) w_f* J`` with ``J`` ``position_jacobian`` ``[(B,) T, d, N]`` of its
+    set's centre; the stop excess through ``stop_jacobian`` ``[(B,) s, N]`` of the final centre's stop dims."""
+    values = evaluation.values  # masked: inf; non-finite: 0 (no gradient, as with autograd)
+    coef = torch.where((values < threshold) & (values > 0), gauge.picked.sign(), 0.0)  # [B, T, K]
+    per_step = (coef.unsqueeze(-2) @ gauge.weights).squeeze(-2)  # [B, T, d]
+    grad = (per_step.flatten(1).unsqueeze(1) @ position_jacobian.flatten(-3, -2)).squeeze(1)  # [B, N]
+    if checker.stop_dims:
+        final = _stop_centres(checker, evaluation.centers)  # [B, s]
+        excess = evaluation.stop_excess.unsqueeze(-1)
+        attains = (final.abs() - evaluation.stop_room) == excess  # amax: shared equally between ties
+        share = attains * (final.sign() * (excess > 0)) / attains.sum(-1, keepdim=True).clamp_min(1)
+        grad = grad + (share.unsqueeze(1) @ stop_jacobian).squeeze(1)
+    return grad
 
 
 class FacetQPAdjuster:
@@ -206,6 +239,11 @@ class FacetQPAdjuster:
         self.polish = int(polish)
         self.target_margin = float(target_margin)
         self.backtracking = int(backtracking)
+
+    def prepare(self, checker: PlanChecker) -> None:
+        """Compile what this adjuster runs on ``checker`` now, not at its first control step
+        (:func:`prepare_linearisation`); :class:`~torchrl_brsl.safety.SafetyDecision` calls it for its checkers."""
+        prepare_linearisation(checker)
 
     def __call__(self, checker: PlanChecker, x0: Tensor, plan: Tensor, obstacles: Obstacles,
                  start: float | None = None, reference: Tensor | None = None) -> Adjustment:
@@ -387,44 +425,34 @@ def _brake_derivative(checker: PlanChecker, states: Tensor) -> Tensor:
     return torch.stack(rows, dim=-2) * unclipped.unsqueeze(-1)
 
 
+def prepare_linearisation(checker: PlanChecker) -> None:
+    """Compile the linearisation the adjusters run on ``checker``, so that no control step stalls on it: with a
+    compiled local model and a braking policy, the plan's loop with the policy's tangents (about 30 s on a
+    2-core CPU; the constant brake's is compiled by :meth:`~torchrl_brsl.reach.DataDrivenReach.compile_steps`).
+    Otherwise nothing."""
+    if checker.plan_dependent and checker.failsafe.policy is not None and checker.reach.compile_options is not None:
+        rest = checker.action_low.new_zeros(1, checker.reach.state_dim)
+        plan = checker.hold(rest).expand(1, min(2, checker.horizon), -1)  # >= 2 directions: one graph for all
+        with torch.no_grad():
+            _leaf_rollout(checker, rest, plan)
+
+
 def _leaf_rollout(checker: PlanChecker, x0: Tensor, plan: Tensor) -> tuple[Tensor, Zonotope, Tensor, Tensor]:
     """:meth:`PlanChecker.rollout_sets` of a local model, ``(actions, sets, covered)``, and from the same
     rollout ``d centres / d plan`` ``[B, T, n, P, m]`` along the plan's own sets.
 
-    Each step maps the centres' directions with the leaf models and relaxations it chose
-    (held fixed; :meth:`DataDrivenReach.reach_covered` ``tangents``, one compiled loop with
-    compiled steps), and a braking policy's tail step by step with its derivative at the centres:
-    one rollout, where finite differences need ``P m + 1``.
+    Each step maps the centres' directions with the leaf models and relaxations it chose (held fixed;
+    :meth:`DataDrivenReach.reach_covered` ``tangents``, one compiled loop when compiled), and a braking
+    policy's tail with the policy's derivative at the centres (:meth:`PlanChecker.brake_tangent`): one
+    rollout, where finite differences of the whole plan need ``P m + 1``.
     Exact at a point set between kinks; a linearisation elsewhere (every iterate is still checked).
     """
     n_envs, plan_steps, m = plan.shape
-    n_vars, reach = plan_steps * m, checker.reach
+    n_vars, n = plan_steps * m, checker.reach.state_dim
     basis = torch.eye(n_vars, dtype=plan.dtype, device=plan.device).view(plan_steps, m, n_vars)
-    center = x0.to(plan.dtype)
-    if checker.failsafe.policy is None:  # the actions known in advance: the whole plan in one call
-        actions = torch.cat((plan, checker.hold(plan).expand(n_envs, checker.horizon - plan_steps, m)), dim=1)
-        du = torch.cat((basis, basis.new_zeros(checker.horizon - plan_steps, m, n_vars))).expand(n_envs, -1, -1, -1)
-        sets, covered, moved = reach.reach_covered(Zonotope.from_point(center), actions,
-                                                   (center.new_zeros(n_envs, reach.state_dim, n_vars), du))
-        return actions, sets, covered, moved.reshape(n_envs, checker.horizon, reach.state_dim, plan_steps, m)
-    generators = center.new_zeros(n_envs, reach.state_dim, 0)
-    tangent = center.new_zeros(n_envs, reach.state_dim, n_vars)
-    covered = torch.ones(n_envs, dtype=torch.bool, device=plan.device)
-    actions, centers, sets, jacobians = [], [], [], []
-    for j in range(checker.horizon):
-        if j < plan_steps:
-            action, moved = plan[:, j], basis[j].expand(n_envs, m, n_vars)
-        else:
-            action = checker.brake(center)
-            moved = _brake_derivative(checker, center) @ tangent
-        center, generators, inside, tangent = reach.step_sets(center, generators, action, (tangent, moved))
-        covered = covered & inside
-        actions.append(action)
-        centers.append(center)
-        sets.append(generators)
-        jacobians.append(tangent)
-    jacobian = torch.stack(jacobians, dim=1).view(n_envs, checker.horizon, reach.state_dim, plan_steps, m)
-    return torch.stack(actions, dim=1), stack_steps(centers, sets), covered, jacobian
+    tangents = (plan.new_zeros(n_envs, n, n_vars), basis.expand(n_envs, -1, -1, -1))
+    actions, sets, covered, moved = checker.rollout_sets(x0, plan, tangents)
+    return actions, sets, covered, moved.reshape(n_envs, checker.horizon, n, plan_steps, m)
 
 
 def _centre_jacobian(checker: PlanChecker, x0: Tensor, plan: Tensor, eps: float = 1e-6) -> Tensor:

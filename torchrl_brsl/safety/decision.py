@@ -63,6 +63,7 @@ class SafetyDecision:
         failsafe: the braking manoeuvre.
         adjuster: called as ``adjuster(checker, x0, plan, obstacles, start=, reference=)`` on the
             envs whose proposal fails (see :mod:`~torchrl_brsl.safety.adjust`); ``None``: never adjust.
+            Its ``prepare(checker)``, if it has one, is called here for each checker (e.g. to compile).
         local_checker: verifies plans with a restricted-domain model (its action bounds the
             local domain's), or ``None``.
 
@@ -76,6 +77,10 @@ class SafetyDecision:
     def __init__(self, checker: PlanChecker, failsafe: Failsafe, adjuster: Callable | None = None,
                  local_checker: PlanChecker | None = None):
         self.checker, self.failsafe, self.adjuster, self.local_checker = checker, failsafe, adjuster, local_checker
+        prepare = getattr(adjuster, "prepare", None)
+        for each in (checker, local_checker) if prepare is not None else ():
+            if each is not None:
+                prepare(each)
         self.horizon = checker.horizon
         # a proposal counts as out of bounds beyond rounding (the bounds may be float32)
         self.bound_tolerance = 1e-6 * (checker.action_high - checker.action_low).clamp_min(1.0)
