@@ -256,6 +256,12 @@ def test_the_gradient_on_a_local_model_chains_the_loss_through_the_leaf_jacobian
     loss = torch.relu(threshold - torch.nan_to_num(values, posinf=1e6)).sum((-1, -2)) + torch.relu(stop_excess)
     (in_centres,) = torch.autograd.grad(loss.sum(), centers)  # [B, T, n]
     torch.testing.assert_close(closed, torch.einsum("btn,btnk->bk", in_centres, jacobian), rtol=1e-9, atol=1e-12)
+    adjuster = GradientAdjuster(max_iterations=1, target_margin=threshold - 1, time_budget=None)
+    scale = checker.action_high - checker.action_low
+    expected = adjuster._step(plan, closed.view_as(plan), ~evaluation.safe, checker.action_low, checker.action_high,
+                              scale)
+    assert not evaluation.safe.all()  # the adjuster takes this gradient's step
+    torch.testing.assert_close(adjuster(checker, x0, plan, obstacles).plan, expected, rtol=0, atol=1e-12)
 
 
 @pytest.mark.filterwarnings("error::RuntimeWarning")  # no fallback to eager
