@@ -88,8 +88,9 @@ def main() -> None:
     for index in range(args.calls):
         for run in runs.values():
             call(run, index >= N_WARMUP)
-    print(f"{args.task}: {N_ENVS} envs in one layer, random policy, local model ({'eager' if args.eager else 'compiled'},"
-          f" {args.steps} offline steps), {args.calls - N_WARMUP} calls each, alternated")
+    mode = "eager" if args.eager else "compiled"
+    print(f"{args.task}: {N_ENVS} envs in one layer, random policy, local model ({mode}, {args.steps} offline steps),"
+          f" {args.calls - N_WARMUP} calls each, alternated")
     print(f"{'':<30}{'ms/call':>9}{'adjusting calls':>17}{'their ms':>10}{'iterations':>12}{'failsafe':>10}")
     for name, run in runs.items():
         print(f"{name:<30}{statistics.median(run['times']):>9.1f}{len(run['adjusting']):>17}"

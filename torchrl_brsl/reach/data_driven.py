@@ -427,8 +427,9 @@ class DataDrivenReach(nn.Module):
         about a minute per model on a 2-core CPU, in every process: the plan's loops are not served
         by the on-disk cache. ``warm_up`` compiles the checking and the linearisation graphs here, on two
         offline states, so that no control step stalls on it (the graphs of gradients through the
-        steps, which the adjusters take only for obstacles checked by the LP, compile on first use). A global model's steps are one
-        affine map and stay eager: it records the choice for the rollout of a braking policy's tail
+        steps, which the adjusters take only for obstacles checked by the LP, compile on first use). A
+        global model's steps are one affine map and stay eager: it records the choice for the rollout
+        of a braking policy's tail
         (:class:`~torchrl_brsl.safety.PlanChecker`), which follows it (:attr:`compile_options`).
 
         Calling it again with the same arguments keeps the compiled graphs.

@@ -40,8 +40,8 @@ class GradientAdjuster:
     on the plan, it is the gradient through the centres with the sets' generators held fixed
     (eq. (11) as the paper states it), each centre's Jacobian taken along the rollout that checks
     the plan with each step's leaf models and relaxations held fixed (:meth:`PlanChecker.rollout_sets`
-    with tangents: one compiled loop when compiled, where autograd ran compiled steps forward and
-    backward, 5x slower). Obstacles checked by the LP: autograd.
+    with tangents: one compiled loop per iteration when compiled, where autograd ran compiled steps
+    forward and backward; ``benchmarks/bench_gradient.py``). Obstacles checked by the LP: autograd.
 
     Args:
         max_iterations: gradient steps at most.
@@ -89,7 +89,7 @@ class GradientAdjuster:
                 return self._leaf_steps(checker, x0, plan, obstacles, start)
         return self._autograd(checker, x0, plan, obstacles, start)
 
-    _analytic = True  # closed-form gradients when the centres are affine in the plan
+    _analytic = True  # closed-form gradients (False: autograd through the rollout, for comparison)
 
     def _step(self, plan: Tensor, grad: Tensor, active: Tensor, low: Tensor, high: Tensor,
               scale: Tensor) -> Tensor:
@@ -160,7 +160,8 @@ class GradientAdjuster:
             *rollout, jacobian = _leaf_rollout(checker, x0, plan)  # [B, T, n, P, m]
             evaluation, gauge = checker.evaluate_with_gauge(x0, plan, obstacles, rollout=tuple(rollout))
             jacobian = jacobian.flatten(-2)
-            return evaluation, gauge, lambda: (jacobian[:, :, checker.position_dims], jacobian[:, -1, checker.stop_dims])
+            return evaluation, gauge, lambda: (jacobian[:, :, checker.position_dims],
+                                               jacobian[:, -1, checker.stop_dims])
 
         return self._closed_form_steps(checker, linearise, plan, start)
 
