@@ -14,7 +14,8 @@ methods BRSL, RTS, SAILR, SECAS, Baseline (TD3) as columns, then the ablations. 
 paper's: the ensemble world model rolls the policy out into the plan the layer checks (runs
 trained with ``method.name=brsl_ensemble method.planner=ensemble``); the recipe's default (one
 action, then braking: ``method=brsl``) is the ablation "BRSL (one action, then braking)", and
-``learn_from: executed`` (``method.name=brsl_executed``) another. Every cell is the mean ± std over
+``learn_from: executed`` (``method.name=brsl_executed``) another; ``brsl_rotor`` and ``td3_rotor`` are the
+recipe's default and TD3 on the rotor-driven multirotors (``+task.env.robot=rotor``). Every cell is the mean ± std over
 seeds (the seed count is a row), compute time the per-step mean ± per-step std averaged over
 seeds; a method without runs on a task shows ``–``. Extra rows: collision steps during training
 (summed over the run, mean ± std over seeds) and interventions. Writes ``fig4.png`` (episode
@@ -41,7 +42,8 @@ from recipes.tasks import task_kind
 #: ``method.name=brsl_ensemble method.planner=ensemble``); its names for the columns, and the ablations'
 METHODS = ["brsl_ensemble", "rts", "sailr", "secas", "td3"]
 LABELS = {"brsl_ensemble": "BRSL", "rts": "RTS", "sailr": "SAILR", "secas": "SECAS", "td3": "Baseline",
-          "brsl": "BRSL (one action, then braking)", "brsl_executed": "BRSL (learns executed)"}
+          "brsl": "BRSL (one action, then braking)", "brsl_executed": "BRSL (learns executed)",
+          "brsl_rotor": "BRSL (one action, then braking), rotor robot", "td3_rotor": "Baseline, rotor robot"}
 #: the paper's tasks per table (others of the same kind follow), with its names for them
 TASKS = {"goal": ["diffdrive_nav", "quadrotor_nav"], "path": ["point_circle", "hexarotor_wind"]}
 TASK_LABELS = {"diffdrive_nav": "Turtlebot", "quadrotor_nav": "Quadrotor", "point_circle": "Point",
