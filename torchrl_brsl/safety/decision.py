@@ -77,10 +77,9 @@ class SafetyDecision:
     def __init__(self, checker: PlanChecker, failsafe: Failsafe, adjuster: Callable | None = None,
                  local_checker: PlanChecker | None = None):
         self.checker, self.failsafe, self.adjuster, self.local_checker = checker, failsafe, adjuster, local_checker
-        prepare = getattr(adjuster, "prepare", None)
-        for each in (checker, local_checker) if prepare is not None else ():
-            if each is not None:
-                prepare(each)
+        if hasattr(adjuster, "prepare"):  # e.g. compile the adjuster's graphs now, not at a control step
+            for each in filter(None, (checker, local_checker)):
+                adjuster.prepare(each)
         self.horizon = checker.horizon
         # a proposal counts as out of bounds beyond rounding (the bounds may be float32)
         self.bound_tolerance = 1e-6 * (checker.action_high - checker.action_low).clamp_min(1.0)
