@@ -25,9 +25,10 @@ CASES = {
     # direction follows: the hinges find them once refined. Measured: 40 of 40 claimed, final radius 0.018 m
     # median, 0.040 m at most (0 of 40 claimed with the hinges on their grid)
     "diffdrive_nav:wheeled:body": ({"robot": "wheeled"}, 2000, 7, 0.9, 0.05),
-    # measured: 40 of 40 claimed, final radius 0.13 m median, 0.50 m at most (0.33 / 0.76 m with the hinges on
-    # their grid)
-    "quadrotor_nav:capped": ({}, 500, 11, 0.9, 0.75),
+    # the recipe's 2,000 offline steps. Measured: 40 of 40 claimed, final radius 0.11 m median, 0.39 m at most (500
+    # steps: 0.12 / 0.49 m, but the corners of the velocity box go unvisited, and 400 sampled plans put 6 of 4,389
+    # true states outside, where these 40 put none: benchmarks/bench_task_soundness.py)
+    "quadrotor_nav:capped": ({}, 2000, 11, 0.9, 0.6),
     "point_boxes:capped": ({}, 500, 4, 0.9, 0.1),
     # a new wind every episode, not in the state: the data must see the range of winds (OFFLINE_EPISODE below).
     # Measured: 25 of 40 claimed, final radius 0.31 m median, 0.46 m at most. With the task's 400-step episodes
