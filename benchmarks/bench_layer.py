@@ -10,8 +10,12 @@ each with the local reachability model (the default), the local model fitted in 
 frame (``body``) and the global fit; with ``--compile`` also the local models with compiled steps
 (``DataDrivenReach.compile_steps``; one untimed episode per layer first, which compiles).
 
-The layer's own time is its ``compute_time`` diagnostic (read, check, adjust, write).
-Usage: ``python benchmarks/bench_layer.py [--quick] [--compile]``
+The layer's own time is its ``compute_time`` diagnostic (read, check, adjust, write). Beside each
+layer row, the shares of its timed steps that the layer adjusted and verified, that fell back to the
+failsafe, to ``unverified_hold`` or were ``out_of_data``: an adjusting row whose steps all end in the
+failsafe times the adjuster's budget, not its speed. ``--data`` sets the offline steps (the recipes fit
+the Turtlebot's body-frame model from 2,000).
+Usage: ``python benchmarks/bench_layer.py [--quick] [--compile] [--data 500]``
 """
 from __future__ import annotations
 
@@ -39,7 +43,13 @@ def make_layer(reach, info, adjuster):
                            action_low=info.action_low, action_high=info.action_high, adjuster=adjuster)
 
 
-def episode_times(layer, steps: int, towards_wall: bool, seed: int) -> list[float]:
+FLAGS = ("failsafe", "unverified_hold", "out_of_data")
+
+
+def episode_times(layer, steps: int, towards_wall: bool, seed: int,
+                  flags: dict[str, list[bool]] | None = None) -> list[float]:
+    """The layer's ``compute_time`` of each step (s); ``flags``: filled with each step's ``intervened`` and
+    :data:`FLAGS` diagnostics."""
     env = TransformedEnv(envs.make(TASK, seed=seed, episode_steps=10_000), layer)
     td = env.reset()
     state = td["state"]
@@ -60,8 +70,19 @@ def episode_times(layer, steps: int, towards_wall: bool, seed: int) -> list[floa
         td["action"] = td["plan"][0]
         td = env.step(td)
         times.append(td["next", "brsl", "compute_time"].item())
+        if flags is not None:
+            for name in ("intervened", *FLAGS):
+                flags.setdefault(name, []).append(bool(td["next", "brsl", name]))
         td = env.step_mdp(td)
     return times
+
+
+def shares(flags: dict[str, list[bool]], first: int) -> str:
+    """Per cent of the steps from ``first`` on: adjusted and verified, then each of :data:`FLAGS`."""
+    def share(values):
+        return 100 * sum(values[first:]) / max(len(values[first:]), 1)
+    verified = [i and not f for i, f in zip(flags["intervened"], flags["failsafe"])]
+    return "".join(f"{share(values):>9.0f}" for values in (verified, *(flags[name] for name in FLAGS)))
 
 
 def stats(times: list[float]) -> tuple[float, float]:
@@ -73,14 +94,15 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--compile", action="store_true", help="add the local models with compiled steps")
+    parser.add_argument("--data", type=int, default=500, help="offline steps")
     args = parser.parse_args()
     torch.set_num_threads(1)
     torch.manual_seed(0)
     info = envs.safety_info(TASK)
     noise = Zonotope(info.noise_center.double(), info.noise_generators.double())
-    data = collect_offline_data(envs.make(TASK, empty=True, seed=1), 500)
+    data = collect_offline_data(envs.make(TASK, empty=True, seed=1), args.data)
     steps = 30 if args.quick else 120
-    rows = {}
+    rows, flag_shares = {}, {}
     methods = METHODS + (COMPILED if args.compile else ())
     for method in methods:
         frame = BodyFrame(info.position_dims, info.heading_dims) if method.startswith("body") else None
@@ -94,9 +116,12 @@ def main() -> None:
             layer = make_layer(reach, info, adjuster or GradientAdjuster())
             if method in COMPILED:  # compile outside the timing
                 episode_times(layer, 15, adjuster is not None, 0)
-            times = episode_times(layer, steps, adjuster is not None, 0)
+            flags = {}
+            times = episode_times(layer, steps, adjuster is not None, 0, flags)
             # adjusting: once the wall is within braking distance every step adjusts
-            rows[f"{method}: layer, {name}"] = stats(times[12:] if adjuster is not None else times[5:])
+            first = 12 if adjuster is not None else 5
+            rows[f"{method}: layer, {name}"] = stats(times[first:])
+            flag_shares[f"{method}: layer, {name}"] = shares(flags, first)
 
     base = envs.make(TASK, seed=0)
     td = base.reset()
@@ -118,10 +143,11 @@ def main() -> None:
             actor_times.append(time.perf_counter() - start)
     rows["one actor forward (MLP 23-256-256-2)"] = stats(actor_times)
 
-    print(f"{TASK}: {N_OBSTACLES} obstacles, n_plan = {N_PLAN}, n_brk = {info.n_brk}, one CPU thread")
-    print(f"{'':<66}{'median ms':>12}{'p99 ms':>10}")
+    print(f"{TASK}: {N_OBSTACLES} obstacles, n_plan = {N_PLAN}, n_brk = {info.n_brk}, one CPU thread, "
+          f"{args.data} offline steps; % of the timed steps")
+    print(f"{'':<66}{'median ms':>12}{'p99 ms':>10}{'adjusted':>9}{'failsafe':>9}{'hold':>9}{'no data':>9}")
     for label, (median, p99) in rows.items():
-        print(f"{label:<66}{median:>12.3f}{p99:>10.3f}")
+        print(f"{label:<66}{median:>12.3f}{p99:>10.3f}{flag_shares.get(label, '')}")
     for method in methods:
         best = min(v[0] for k, v in rows.items() if "adjusting" in k and k.startswith(f"{method}:"))
         print(f"target ({method}): median <= 1.5 ms with adjustment: {'met' if best <= 1.5 else 'MISSED'} "
