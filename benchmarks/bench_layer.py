@@ -12,8 +12,8 @@ frame (``body``) and the global fit; with ``--compile`` also the local models wi
 
 The layer's own time is its ``compute_time`` diagnostic (read, check, adjust, write). Beside each
 layer row, the shares of its timed steps that the layer adjusted and verified, that fell back to the
-failsafe, to ``unverified_hold`` or were ``out_of_data``: an adjusting row whose steps all end in the
-failsafe times the adjuster's budget, not its speed. ``--data`` sets the offline steps (the recipes fit
+failsafe or to ``unverified_hold``, and whose proposal was ``out_of_data``: an adjusting row whose steps
+all end in the failsafe times the adjuster's budget, not its speed. ``--data`` sets the offline steps (the recipes fit
 the Turtlebot's body-frame model from 2,000).
 Usage: ``python benchmarks/bench_layer.py [--quick] [--compile] [--data 500]``
 """

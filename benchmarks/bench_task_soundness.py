@@ -50,7 +50,8 @@ def check(name: str, steps: int, plans: int, seed: int) -> tuple[str, DataDriven
     env = envs.make(task, empty=True, seed=12, episode_steps=10_000, **options)
     x0, actions, visited = env_trajectories(env, plans, info.n_brk + 1, info.action_low, info.action_high,
                                             info.braking_action)
-    sets, claimed = reach.reach_covered(Zonotope.from_point(x0), actions)
+    initial = Zonotope.from_point(x0)
+    sets, claimed = reach.reach_covered(initial, actions)
     outside = ~sets.contains(visited) & claimed[:, None]  # [P, H], the tests' criterion (exact, HiGHS beyond 3-D)
     worst = f"{'-':>34}"
     if outside.any():  # the largest excess of an outside state beyond its set's interval half-width
@@ -62,7 +63,7 @@ def check(name: str, steps: int, plans: int, seed: int) -> tuple[str, DataDriven
     row = (f"{name:<20}{steps:>6}{f'{int(claimed.sum())}/{plans}':>10}"
            f"{f'{int(outside.sum())}/{int(claimed.sum()) * outside.shape[1]}':>14}{int(outside.any(-1).sum()):>8}"
            f"{worst}")
-    return row, reach, Zonotope.from_point(x0), actions
+    return row, reach, initial, actions
 
 
 def plan_times(models: dict[int, tuple[DataDrivenReach, Zonotope, torch.Tensor]], calls: int = 40) -> str:
