@@ -11,15 +11,16 @@ def fit(system, num, seed=0, **kwargs):
                                **kwargs)
 
 
-def random_plans(system, n_plans=20, horizon=10, seed=1):
-    """Starts inside the data region (positions at 0), uniformly random plans."""
+def random_plans(system, n_plans=20, horizon=10, seed=1, spread=0.7):
+    """Starts inside the data region (within ``spread`` of its half-range around its centre, positions at 0),
+    uniformly random plans."""
     gen = torch.Generator().manual_seed(seed)
     center, half = (system.state_low + system.state_high) / 2, (system.state_high - system.state_low) / 2
-    x0 = center + 0.7 * half * (torch.rand(n_plans, center.shape[0], generator=gen, dtype=torch.float64) * 2 - 1)
+    x0 = center + spread * half * (torch.rand(n_plans, center.shape[0], generator=gen, dtype=torch.float64) * 2 - 1)
     x0[:, list(system.translation_invariant_dims)] = 0.0
     return x0, system.sample_actions(n_plans, horizon, generator=gen), gen
 
 
-def sampled(system, reach, seed=1, samples=300):
-    x0, plans, gen = random_plans(system, seed=seed)
+def sampled(system, reach, seed=1, samples=300, spread=0.7, n_plans=20):
+    x0, plans, gen = random_plans(system, n_plans=n_plans, seed=seed, spread=spread)
     return sample_reach(reach, lambda x, u: system.step(x, u, gen), x0, plans, samples)
