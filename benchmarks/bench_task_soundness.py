@@ -13,7 +13,7 @@ data size costs: the time of a plan's sets (compiled, one CPU thread, at 1 and 1
 models of every data size timed in alternation.
 
 Usage: ``python benchmarks/bench_task_soundness.py [--plans 400] [--data 500,2000] [--tasks quadrotor_nav,...]
-[--timing]``
+[--timing] [--held-out-folds 5]``
 """
 from __future__ import annotations
 
@@ -36,7 +36,8 @@ TASKS = {
 }
 
 
-def check(name: str, steps: int, plans: int, seed: int) -> tuple[str, DataDrivenReach, Zonotope, torch.Tensor]:
+def check(name: str, steps: int, plans: int, seed: int,
+          held_out_folds: int = 0) -> tuple[str, DataDrivenReach, Zonotope, torch.Tensor]:
     """One row: fit from ``steps`` offline transitions, sample ``plans`` true trajectories, count the states outside.
     Also the model, the plans' initial sets and their actions."""
     task, options, body, episode = TASKS[name]
@@ -46,7 +47,8 @@ def check(name: str, steps: int, plans: int, seed: int) -> tuple[str, DataDriven
     data = collect_offline_data(offline, steps)
     reach = DataDrivenReach.from_data(data, Zonotope(info.noise_center.double(), info.noise_generators.double()),
                                       translation_invariant_dims=info.position_dims, max_generators=30,
-                                      body_frame=BodyFrame(info.position_dims, info.heading_dims) if body else None)
+                                      body_frame=BodyFrame(info.position_dims, info.heading_dims) if body else None,
+                                      held_out_folds=held_out_folds)
     env = envs.make(task, empty=True, seed=12, episode_steps=10_000, **options)
     x0, actions, visited = env_trajectories(env, plans, info.n_brk + 1, info.action_low, info.action_high,
                                             info.braking_action)
@@ -89,6 +91,9 @@ def main() -> None:
     parser.add_argument("--tasks", default=",".join(TASKS), help=f"comma-separated, of {', '.join(TASKS)}")
     parser.add_argument("--seed", type=int, default=0, help="torch seed of the offline actions and the plans")
     parser.add_argument("--timing", action="store_true", help="also time each data size's plan sets (compiles them)")
+    parser.add_argument("--held-out-folds", type=int, default=0,
+                        help="fit with DataDrivenReach.fit(held_out_folds=K): leaves widened where held-out "
+                             "transitions fall outside (its warning is printed)")
     args = parser.parse_args()
     unknown = sorted(set(args.tasks.split(",")) - set(TASKS))
     if unknown:
@@ -99,7 +104,7 @@ def main() -> None:
         models = {}
         for steps in (int(s) for s in args.data.split(",")):
             start = time.perf_counter()
-            row, *models[steps] = check(name, steps, args.plans, args.seed)
+            row, *models[steps] = check(name, steps, args.plans, args.seed, args.held_out_folds)
             print(f"{row}   {time.perf_counter() - start:.0f} s", flush=True)
         if args.timing:
             print(plan_times(models), flush=True)

@@ -1,7 +1,7 @@
 """Data-driven reachability analysis of black-box systems."""
 from torchrl_brsl.reach.body_frame import BodyFrame
-from torchrl_brsl.reach.cells import (Cells, LeafLayout, fit_cells, input_relevance, leaf_bounds, leaf_distance,
-                                      leaf_layout, split_directions, tree_nodes)
+from torchrl_brsl.reach.cells import (Cells, LeafLayout, fit_cells, held_out_factors, input_relevance, leaf_bounds,
+                                      leaf_distance, leaf_layout, point_bounds, split_directions, tree_nodes)
 from torchrl_brsl.reach.data_driven import METHODS, DataDrivenReach
 from torchrl_brsl.reach.evaluation import SampledReach, env_trajectories, points_outside, sample_reach
 from torchrl_brsl.reach.examples import (BlackBoxSystem, CappedVelocityServo, DoubleIntegrator, KinematicBicycle,
@@ -16,7 +16,7 @@ from torchrl_brsl.reach.offline import collect_offline_data, load_offline_data, 
 __all__ = ["METHODS", "BlackBoxSystem", "BodyFrame", "CappedVelocityServo", "Cells", "DataDrivenReach",
            "DoubleIntegrator", "Features", "KinematicBicycle", "LeafLayout", "SampledReach", "SaturatedThrustPoint",
            "Unicycle", "collect_offline_data", "covering_radius", "env_trajectories", "feature_values", "fit_cells",
-           "fit_features", "fit_hinges", "hinge_features", "input_relevance", "leaf_bounds", "leaf_distance",
-           "leaf_layout", "load_offline_data", "points_outside", "product_features", "product_relaxation",
-           "prune_hinges", "refine_hinges", "relu_relaxation", "residual_lipschitz", "sample_reach",
-           "save_offline_data", "split_directions", "stack_steps", "tree_nodes"]
+           "fit_features", "fit_hinges", "held_out_factors", "hinge_features", "input_relevance", "leaf_bounds",
+           "leaf_distance", "leaf_layout", "load_offline_data", "point_bounds", "points_outside", "product_features",
+           "product_relaxation", "prune_hinges", "refine_hinges", "relu_relaxation", "residual_lipschitz",
+           "sample_reach", "save_offline_data", "split_directions", "stack_steps", "tree_nodes"]

@@ -462,6 +462,60 @@ def leaf_bounds(cells: Cells, z_center: Tensor, z_radius: Tensor, phi_radius: Te
     return index, errors, covered
 
 
+def point_bounds(cells: Cells, points: Tensor, z: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Each output's prediction and error half-width at single inputs (noise not included).
+
+    Args:
+        cells: fitted on ``points`` ``[N, d]`` (scaled).
+        z: ``[B, d]`` scaled query inputs.
+
+    Returns:
+        ``(prediction [B, n], errors [B, n], covered [B])``.
+    """
+    n = cells.errors.shape[0]
+    features = torch.stack([feature_values(z, Features(cells.hinge_directions[k], cells.hinge_knots[k],
+                                                       cells.product_directions[k], cells.product_knots[k], None))
+                            for k in range(n)], dim=1)  # [B, n, H + Q]
+    distance = leaf_distance(cells, points, z)
+    index, errors, covered = leaf_bounds(cells, z, torch.zeros_like(z), z.new_zeros(z.shape[0], len(cells.directions)),
+                                         features, features, distance)
+    outputs = torch.arange(n, device=z.device)
+    row = torch.cat((z.unsqueeze(1).expand(-1, n, -1), features), dim=-1)
+    prediction = (row * cells.slopes[outputs, index]).sum(-1) + cells.intercepts[outputs, index]
+    return prediction, errors, covered
+
+
+def held_out_factors(cells: Cells, inputs: Tensor, targets: Tensor, noise_radius: Tensor, n_actions: int, folds: int,
+                     generator: torch.Generator | None = None, **kwargs) -> tuple[Tensor, int]:
+    """How much each leaf's error bound must grow to hold the held-out transitions: ``([n, M] >= 1, outside)``.
+
+    The data are split into ``folds`` parts; cells fitted (:func:`fit_cells`, ``kwargs``) on all
+    but one part bound the held-out part's targets at its inputs. Where a held-out target falls
+    outside ``prediction ± (error + w̄)``, the data near it were too sparse for the Lipschitz
+    constants they gave, and the leaf of ``cells`` (fitted on all the data) that holds its input
+    gets the ratio of its distance beyond the noise to that error bound. ``outside`` counts the
+    held-out transitions outside their bounds. A cross-validation of the bound's constants
+    (Milanese & Novara 2004 validate a set-membership model's constants on data; here on data the
+    fit did not see).
+    """
+    order = torch.randperm(inputs.shape[0], generator=generator)
+    factors = torch.ones_like(cells.errors)
+    outside = 0
+    for fold in range(folds):
+        test = order[fold::folds]
+        train = torch.ones(inputs.shape[0], dtype=torch.bool)
+        train[test] = False
+        held = fit_cells(inputs[train], targets[train], noise_radius, n_actions, **kwargs)
+        prediction, errors, covered = point_bounds(held, inputs[train], inputs[test])
+        beyond = ((targets[test] - prediction).abs() - noise_radius) * covered.unsqueeze(-1)  # [B, n]
+        outside += int((beyond > errors).any(-1).sum())
+        ratio = (beyond / errors.clamp_min(1e-300)).clamp_min(1.0)  # [B, n]
+        phi = inputs[test] @ cells.directions.T
+        inside = ((phi[:, None, None] >= cells.low) & (phi[:, None, None] <= cells.high)).all(-1)  # [B, n, M]
+        factors = torch.maximum(factors, torch.where(inside, ratio.unsqueeze(-1), 1.0).amax(0))
+    return factors, outside
+
+
 class LeafLayout(NamedTuple):
     """Each output's weighted data grouped by leaf, ``S`` slots per leaf (:func:`leaf_layout`).
 
