@@ -138,9 +138,10 @@ class DataDrivenReach(nn.Module):
                 with cells fitted on the rest (:func:`~torchrl_brsl.reach.cells.held_out_factors`) and
                 widen the error bound of each leaf that holds a held-out transition outside its bound by
                 the factor it needed (a warning says how many fell outside); costs this many extra
-                fits. 0 (default): no check. A partial remedy: from 500 random steps, 5 folds cut the
+                fits. 0 (default): no check. A partial remedy: on hinges free in every input (before
+                :data:`~torchrl_brsl.reach.hinges.SPARSE_SHARE`), from 500 random steps, 5 folds cut the
                 sampled states outside the example bicycle's sets from starts near the data's edges from
-                182 to 0 of 60,000 in one draw (at 1.1x their width) and from 260 to 175 in three others,
+                182 to 0 of 60,000 in one draw (at 1.1x their width) and from 259 to 174 in three others,
                 and left the capped quadrotor's (6 of 4,389): most lie where no held-out transition does.
             dtype: computation dtype (float64 by default).
         """
