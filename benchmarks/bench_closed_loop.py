@@ -8,7 +8,7 @@ any compilation: ``--compile`` runs the local models' steps compiled). One-actio
 the uncapped servos), stop slack 0.15, the facet-QP adjuster (``--adjuster``), ``--steps`` offline transitions.
 
 Usage: ``python benchmarks/bench_closed_loop.py [--task point_boxes] [--robot kinematic] [--steps 1000]
-[--episodes 40] [--servo capped|uncapped|both] [--models global,local,body] [--compile] [--adjuster facet_qp]``
+[--offline-episode-steps 50] [--episodes 40] [--servo capped|uncapped|both] [--models global,local,body] [--compile] [--adjuster facet_qp]``
 """
 from __future__ import annotations
 
@@ -90,6 +90,8 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=1000, help="offline transitions")
     parser.add_argument("--episodes", type=int, default=40)
     parser.add_argument("--episode-steps", type=int, default=60)
+    parser.add_argument("--offline-episode-steps", type=int, default=None,
+                        help="episode length of the offline data (e.g. 50 on hexarotor_wind: more winds; default: the task's)")
     parser.add_argument("--n-brk", type=int, default=None, help="braking steps of the uncapped servos")
     parser.add_argument("--servo", choices=("capped", "uncapped", "both"), default="both")
     parser.add_argument("--models", default="global,local,body",
@@ -108,7 +110,8 @@ def main() -> None:
     settings = (("capped", robot, info.n_brk), ("uncapped", {**uncapped, **robot}, args.n_brk or info.n_brk))
     for servo, options, n_brk in (s for s in settings if args.servo in (s[0], "both")):
         torch.manual_seed(0)
-        data = collect_offline_data(envs.make(task, empty=True, seed=1, **options), args.steps)
+        offline_episode = {} if args.offline_episode_steps is None else {"episode_steps": args.offline_episode_steps}
+        data = collect_offline_data(envs.make(task, empty=True, seed=1, **options, **offline_episode), args.steps)
         free = run(task, options, None, n_brk, args.episodes, args.episode_steps)
         print(f"{servo:<10}{'none':<8}{free['collisions']:>6}/{free['episodes']:<5}{free['speed']:>8.3f}")
         for method in args.models.split(","):
