@@ -9,7 +9,7 @@ import torch
 
 from torchrl_brsl.reach import DataDrivenReach, DoubleIntegrator
 from torchrl_brsl.safety import FacetQPAdjuster, Failsafe, PlanChecker
-from torchrl_brsl.safety.adjust import _brake_derivative, _centre_jacobian, _feedback_jacobian
+from torchrl_brsl.safety.adjust import _brake_jacobian, _centre_jacobian, _feedback_jacobian
 from torchrl_brsl.safety.plan_check import FUSE_FROM_STEPS
 
 from safety_support import assert_closed_form_matches_autograd, obstacles_of
@@ -21,6 +21,15 @@ D = torch.float64
 def brake_policy(x):
     """Full deceleration, saturating at 0.8 (the clip is active at high speed only)."""
     return (-4.0 * x[..., 2:]).clamp(-0.8, 0.8)
+
+
+def autograd_derivative(policy, states, low=-1.0, high=1.0):
+    """The oracle: ``d clip(policy) / d state`` ``[..., m, n]`` by one backward pass per action dim."""
+    states = states.detach().requires_grad_(True)
+    raw = policy(states).to(states.dtype)
+    rows = [torch.autograd.grad(raw[..., i].sum(), states, retain_graph=True)[0] for i in range(raw.shape[-1])]
+    unclipped = (raw > low) & (raw < high)
+    return torch.stack(rows, dim=-2).detach() * unclipped.detach().unsqueeze(-1)
 
 
 @pytest.fixture(scope="module")
@@ -71,7 +80,7 @@ def test_the_brake_tangent_is_the_policys_derivative(checker, precision):
     directions = torch.randn(64, 4, 3, generator=gen, dtype=D) * torch.tensor([1.0, 1e-3, 0.0])  # one column zero
     raw = policy(states).to(D)
     assert bool((raw.abs() > 1).any()) and bool((raw.abs() < 1).any())  # both sides of the bounds
-    expected = _brake_derivative(smooth, states) @ directions
+    expected = autograd_derivative(policy, states) @ directions
     tolerance = dict(rtol=1e-8, atol=1e-10) if precision == D else dict(rtol=2e-3, atol=2e-4)
     torch.testing.assert_close(smooth.brake_tangent(states, directions), expected, **tolerance)
     assert bool((expected[..., 0] != 0).any()) and bool((smooth.brake_tangent(states, directions)[..., 2] == 0).all())
@@ -154,3 +163,12 @@ def test_a_failing_compilation_warns_and_runs_eagerly(checker):
         got = compiled.rollout(x0, plan)
     for got_part, want in zip(got, _checker_on(checker.reach, checker, LONG).rollout(x0, plan)):
         torch.testing.assert_close(got_part, want, rtol=0, atol=0)
+
+
+def test_the_tails_brake_jacobian_is_the_policys_derivative(checker):
+    """The global model's tail linearisation takes the policy's Jacobian by central differences: autograd's to
+    rounding, on both sides of the clip."""
+    states = torch.randn(3, 6, 4, generator=torch.Generator().manual_seed(1), dtype=D) * 0.3
+    assert bool((brake_policy(states).abs() == 0.8).any()) and bool((brake_policy(states).abs() < 0.8).any())
+    torch.testing.assert_close(_brake_jacobian(checker, states), autograd_derivative(brake_policy, states),
+                               rtol=1e-8, atol=1e-9)

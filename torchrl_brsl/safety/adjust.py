@@ -139,8 +139,8 @@ class GradientAdjuster:
 
         The plan part of every centre is still affine in the plan; the braking tail is
         linearised along the current nominal trajectory, ``J_{j+1} = (A + B Dπ(c_j)) J_j``
-        (``Dπ`` from one batched backward pass per action dim, zero where the brake is clipped),
-        which is the exact gradient of the tail as rolled out. Every iterate is checked exactly.
+        (``Dπ`` by central differences, :func:`_brake_jacobian`, zero where the brake is clipped),
+        the gradient of the tail as rolled out to about 1e-11. Every iterate is checked exactly.
         """
         def linearise(plan: Tensor) -> tuple:
             evaluation, gauge = checker.evaluate_with_gauge(x0, plan, obstacles)
@@ -380,8 +380,8 @@ def _feedback_jacobian(checker: PlanChecker, centers: Tensor, plan_steps: int) -
 
     The first ``P`` centres are affine in the plan (the model's block-Toeplitz input map); each
     tail step ``c_{j+1} = A c_j + B clip(π(c_j)) + k`` multiplies the Jacobian by
-    ``A + B Dπ(c_j)``, with ``Dπ`` evaluated at the nominal ``centers`` ``[B, T, n]`` (one
-    batched backward pass per action dim) and zero where the braking action is clipped. Where
+    ``A + B Dπ(c_j)``, with ``Dπ`` evaluated at the nominal ``centers`` ``[B, T, n]`` (:func:`_brake_jacobian`)
+    and zero where the braking action is clipped. Where
     ``Dπ`` vanishes along the whole tail (a saturated brake, a policy constant there) this is
     the open-loop map's Jacobian, cached, and no product is formed.
     """
@@ -391,7 +391,7 @@ def _feedback_jacobian(checker: PlanChecker, centers: Tensor, plan_steps: int) -
         reach._transfer(horizon)[1].view(horizon, n, horizon, reach.action_dim)[:, :, :plan_steps]
         .reshape(horizon, n, -1).to(centers).contiguous()))  # [T, n, P m]
     n_tail = horizon - plan_steps
-    derivative = _brake_derivative(checker, centers[:, plan_steps - 1:horizon - 1]) if n_tail else None
+    derivative = _brake_jacobian(checker, centers[:, plan_steps - 1:horizon - 1]) if n_tail else None
     if derivative is None or not bool(derivative.any()):
         return open_loop.expand(n_envs, *open_loop.shape)
     closed_loop = reach.state_matrix.to(centers) + reach.input_matrix.to(centers) @ derivative  # [B, n_tail, n, n]
@@ -409,21 +409,18 @@ def _chain(factors: Tensor, start: Tensor, fused: bool = False) -> tuple[Tensor]
     return (torch.stack(out, dim=1),)
 
 
-def _brake_derivative(checker: PlanChecker, states: Tensor) -> Tensor:
-    """``d brake / d state`` ``[..., m, n]`` of the braking policy at ``states`` ``[..., n]`` (one batched
-    backward pass per action dim), zero where the braking action is clipped to the action bounds."""
-    m = checker.action_low.shape[-1]
+def _brake_jacobian(checker: PlanChecker, states: Tensor) -> Tensor:
+    """``d brake / d state`` ``[..., m, n]`` of the braking policy at ``states`` ``[..., n]``, zero where the braking
+    action is clipped to the action bounds. A policy whose output does not depend on the state (autograd records
+    nothing: a constant, a brake saturated here) gets zeros at once; any other :meth:`PlanChecker.brake_tangent`
+    along every state axis (central differences, the local model's way: one policy call on ``2 n`` points per
+    state, faster than a backward pass per action dim, equal to it to about 1e-11 on a float64 policy)."""
     with torch.enable_grad():
-        states = states.detach().requires_grad_(True)
-        raw = checker.failsafe.policy(states).to(states.dtype)  # [..., m]
-        rows = []
-        for i in range(m):
-            grad = (torch.autograd.grad(raw[..., i].sum(), states, retain_graph=i + 1 < m, allow_unused=True)[0]
-                    if raw.requires_grad else None)
-            rows.append(torch.zeros_like(states) if grad is None else grad)
-    raw = raw.detach()
-    unclipped = (raw > checker.action_low) & (raw < checker.action_high)
-    return torch.stack(rows, dim=-2) * unclipped.unsqueeze(-1)
+        depends = checker.failsafe.policy(states.detach().requires_grad_(True)).requires_grad
+    if not depends:
+        return states.new_zeros(*states.shape[:-1], checker.action_low.shape[-1], states.shape[-1])
+    axes = torch.eye(states.shape[-1], dtype=states.dtype, device=states.device)
+    return checker.brake_tangent(states, axes.expand(*states.shape, -1))
 
 
 def prepare_linearisation(checker: PlanChecker) -> None:
