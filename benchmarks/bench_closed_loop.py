@@ -4,11 +4,14 @@ Per setting: collisions (MuJoCo contacts) per episode, mean speed against the sa
 without the layer, the shares of steps with intervention, failsafe, ``unverified_hold`` and
 ``out_of_data``, the median position radius of the final reachable set of the executed
 plans, and the layer's median time per batched call (after ``N_WARMUP`` calls, which include
-any compilation: ``--compile`` runs the local models' steps compiled). One-action proposals (``n_plan = 1``) then the task's braking steps (``--n-brk`` for
-the uncapped servos), stop slack 0.15, the facet-QP adjuster (``--adjuster``), ``--steps`` offline transitions.
+any compilation: ``--compile`` runs the local models' steps compiled). One-action proposals
+(``n_plan = 1``) then the task's braking steps (``--n-brk`` for the uncapped servos), stop slack
+0.15, the facet-QP adjuster (``--adjuster``), ``--steps`` offline transitions (in episodes of
+``--offline-episode-steps``).
 
 Usage: ``python benchmarks/bench_closed_loop.py [--task point_boxes] [--robot kinematic] [--steps 1000]
-[--offline-episode-steps 50] [--episodes 40] [--servo capped|uncapped|both] [--models global,local,body] [--compile] [--adjuster facet_qp]``
+[--offline-episode-steps 50] [--episodes 40] [--servo capped|uncapped|both] [--models global,local,body]
+[--compile] [--adjuster facet_qp]``
 """
 from __future__ import annotations
 
@@ -91,7 +94,8 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=40)
     parser.add_argument("--episode-steps", type=int, default=60)
     parser.add_argument("--offline-episode-steps", type=int, default=None,
-                        help="episode length of the offline data (e.g. 50 on hexarotor_wind: more winds; default: the task's)")
+                        help="episode length of the offline data (default: the task's; e.g. 50 on hexarotor_wind, "
+                             "whose data must see many winds)")
     parser.add_argument("--n-brk", type=int, default=None, help="braking steps of the uncapped servos")
     parser.add_argument("--servo", choices=("capped", "uncapped", "both"), default="both")
     parser.add_argument("--models", default="global,local,body",
