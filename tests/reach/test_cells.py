@@ -4,9 +4,8 @@ import math
 import pytest
 import torch
 
-from torchrl_brsl.reach import hinges
-from torchrl_brsl.reach import (DataDrivenReach, DoubleIntegrator, KinematicBicycle, SaturatedThrustPoint, leaf_distance,
-                                leaf_layout, point_bounds)
+from torchrl_brsl.reach import (DataDrivenReach, DoubleIntegrator, KinematicBicycle, SaturatedThrustPoint, hinges,
+                                leaf_distance, leaf_layout, point_bounds)
 from torchrl_brsl.sets import Zonotope
 
 from reach_support import fit, random_plans, sampled
