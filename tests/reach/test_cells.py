@@ -152,20 +152,25 @@ def test_fit_rejects_bad_input_by_name():
             DataDrivenReach.fit(x, xp, u, system.noise, method=method, held_out_folds=folds)
 
 
-@pytest.mark.parametrize("grouped", [False, True])
-def test_leaf_distance_matches_a_brute_force_oracle(grouped):
+@pytest.mark.parametrize("path", ["points", "grouped", "near"])
+def test_leaf_distance_matches_a_brute_force_oracle(path):
     """``D_l`` = distance of the centre to leaf ``l``'s nearest data point + the box radius, per
     output in its weighted metric (checked against a loop over leaves and points), with and without
-    the data grouped by leaf (:func:`leaf_layout`, the step's path)."""
+    the data grouped by leaf (:func:`leaf_layout`, the step's path); searching ``near`` leaves only,
+    those are exact and the others upper bounds through their representative point."""
     system = SaturatedThrustPoint()
     reach = fit(system, 500)
     cells, points = reach._cells, reach._scaled_data
     gen = torch.Generator().manual_seed(3)
     z = points[:7] + 0.2 * torch.randn(7, points.shape[1], generator=gen, dtype=torch.float64)
     radius = 0.05 * torch.rand(7, points.shape[1], generator=gen, dtype=torch.float64)
-    layout = leaf_layout(cells, reach._weighted_data) if grouped else None
-    distance = leaf_distance(cells, points, z, radius, layout=layout)
+    layout = None if path == "points" else leaf_layout(cells, reach._weighted_data)
     n, n_leaves = cells.errors.shape
+    near = torch.rand(7, n, n_leaves, generator=gen).argsort(-1)[..., :2] if path == "near" else None
+    distance = leaf_distance(cells, points, z, radius, layout=layout, near=near)
+    searched = torch.zeros(7, n, n_leaves, dtype=torch.bool)
+    searched.scatter_(-1, near, True) if near is not None else searched.fill_(True)
+    looser = 0
     for k in range(n):
         w = cells.weights[k]
         for leaf in range(n_leaves):
@@ -173,4 +178,8 @@ def test_leaf_distance_matches_a_brute_force_oracle(grouped):
             if len(mine) == 0:
                 continue
             expected = ((z[:, None] - mine) * w).norm(dim=-1).amin(-1) + (radius * w).norm(dim=-1)
-            assert torch.allclose(distance[:, k, leaf], expected), (k, leaf)
+            exact = searched[:, k, leaf]
+            assert torch.allclose(distance[exact, k, leaf], expected[exact]), (k, leaf)
+            assert (distance[~exact, k, leaf] >= expected[~exact] - 1e-12).all(), (k, leaf)
+            looser += int((distance[~exact, k, leaf] > expected[~exact] + 1e-9).sum())
+    assert (looser > 0) == (path == "near")  # the bound of the leaves not searched is a bound, not exact

@@ -1,7 +1,8 @@
 """Data-driven reachability analysis of black-box systems."""
 from torchrl_brsl.reach.body_frame import BodyFrame
-from torchrl_brsl.reach.cells import (Cells, LeafLayout, fit_cells, held_out_factors, input_relevance, leaf_bounds,
-                                      leaf_distance, leaf_layout, point_bounds, split_directions, tree_nodes)
+from torchrl_brsl.reach.cells import (NEAR_LEAVES, Cells, LeafLayout, fit_cells, held_out_factors, input_relevance,
+                                      leaf_bounds, leaf_distance, leaf_gaps, leaf_layout, point_bounds,
+                                      split_directions, tree_nodes)
 from torchrl_brsl.reach.data_driven import METHODS, DataDrivenReach
 from torchrl_brsl.reach.evaluation import SampledReach, env_trajectories, points_outside, sample_reach
 from torchrl_brsl.reach.examples import (BlackBoxSystem, CappedVelocityServo, DoubleIntegrator, KinematicBicycle,
@@ -13,10 +14,10 @@ from torchrl_brsl.reach.lipschitz import covering_radius, residual_lipschitz
 from torchrl_brsl.reach.local_step import stack_steps
 from torchrl_brsl.reach.offline import collect_offline_data, load_offline_data, save_offline_data
 
-__all__ = ["METHODS", "BlackBoxSystem", "BodyFrame", "CappedVelocityServo", "Cells", "DataDrivenReach",
+__all__ = ["METHODS", "NEAR_LEAVES", "BlackBoxSystem", "BodyFrame", "CappedVelocityServo", "Cells", "DataDrivenReach",
            "DoubleIntegrator", "Features", "KinematicBicycle", "LeafLayout", "SampledReach", "SaturatedThrustPoint",
            "Unicycle", "collect_offline_data", "covering_radius", "env_trajectories", "feature_values", "fit_cells",
            "fit_features", "fit_hinges", "held_out_factors", "hinge_features", "input_relevance", "leaf_bounds",
-           "leaf_distance", "leaf_layout", "load_offline_data", "point_bounds", "points_outside", "product_features",
+           "leaf_distance", "leaf_gaps", "leaf_layout", "load_offline_data", "point_bounds", "points_outside", "product_features",
            "product_relaxation", "prune_hinges", "refine_hinges", "relu_relaxation", "residual_lipschitz",
            "sample_reach", "save_offline_data", "split_directions", "stack_steps", "tree_nodes"]

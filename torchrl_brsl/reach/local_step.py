@@ -25,7 +25,7 @@ from torch import Tensor
 from torch._higher_order_ops.while_loop import while_loop
 
 from torchrl_brsl._compiling import inductor_kwargs, own_code, warn_fallback
-from torchrl_brsl.reach.cells import leaf_bounds, leaf_distance, leaf_layout
+from torchrl_brsl.reach.cells import NEAR_LEAVES, leaf_bounds, leaf_distance, leaf_gaps, leaf_layout
 from torchrl_brsl.reach.hinges import product_relaxation, relu_relaxation
 from torchrl_brsl.sets import Zonotope, pad_generators, reduce_girard
 from torchrl_brsl.sets._checks import skip_value_checks
@@ -75,6 +75,7 @@ class LocalStep:
         self.product_directions = cells.product_directions / scale  # [n, Q, 2, d]
         self.product_knots = cells.product_knots
         self.layout = leaf_layout(cells, model._weighted_data)
+        self.near_leaves = min(NEAR_LEAVES, n_leaves)
         self.leaf_rows = model._leaf_rows
         self.row_offset = torch.arange(n, device=scale.device) * n_leaves
         self.widths = (n, model.action_dim, 1, self.n_hinges, self.n_products)
@@ -362,9 +363,12 @@ class LocalStep:
         feature_low, feature_high = torch.cat((feature_low, low), -1), torch.cat((feature_high, high), -1)
         z_center = z_raw * self.inv_scale
         z_radius = torch.cat((g_free.abs().sum(-1) * self.inv_scale_free, torch.zeros_like(action)), dim=-1)
-        distance = leaf_distance(cells, None, z_center.detach(), z_radius.detach(), layout=self.layout)
+        gaps = leaf_gaps(cells, phi, phi_radius)
+        near = (gaps[0].detach().topk(self.near_leaves, largest=False).indices  # the leaves met most deeply
+                if torch.compiler.is_compiling() else None)
+        distance = leaf_distance(cells, None, z_center.detach(), z_radius.detach(), layout=self.layout, near=near)
         index, errors, covered = leaf_bounds(cells, z_center, z_radius, phi_radius, feature_low, feature_high, distance,
-                                             phi)
+                                             phi, gaps)
         A, B, offset, theta, theta_p = self.leaf_rows[index + self.row_offset].split(self.widths, dim=-1)
         # the relaxations relu(s) ∈ λ s + μ ± μ and s1 s2 ∈ λ1 s1 + λ2 s2 + κ ± ε fold into the leaf's
         # model
