@@ -18,6 +18,6 @@ __all__ = ["METHODS", "NEAR_LEAVES", "BlackBoxSystem", "BodyFrame", "CappedVeloc
            "DoubleIntegrator", "Features", "KinematicBicycle", "LeafLayout", "SampledReach", "SaturatedThrustPoint",
            "Unicycle", "collect_offline_data", "covering_radius", "env_trajectories", "feature_values", "fit_cells",
            "fit_features", "fit_hinges", "held_out_factors", "hinge_features", "input_relevance", "leaf_bounds",
-           "leaf_distance", "leaf_gaps", "leaf_layout", "load_offline_data", "point_bounds", "points_outside", "product_features",
-           "product_relaxation", "prune_hinges", "refine_hinges", "relu_relaxation", "residual_lipschitz",
-           "sample_reach", "save_offline_data", "split_directions", "stack_steps", "tree_nodes"]
+           "leaf_distance", "leaf_gaps", "leaf_layout", "load_offline_data", "point_bounds", "points_outside",
+           "product_features", "product_relaxation", "prune_hinges", "refine_hinges", "relu_relaxation",
+           "residual_lipschitz", "sample_reach", "save_offline_data", "split_directions", "stack_steps", "tree_nodes"]

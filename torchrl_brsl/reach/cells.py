@@ -413,17 +413,19 @@ def _nearest_distance(points: Tensor) -> Tensor:
     return torch.as_tensor(np.asarray(dist)[:, 1], dtype=points.dtype)
 
 
-def leaf_gaps(cells: Cells, phi: Tensor, phi_radius: Tensor) -> tuple[Tensor, Tensor]:
+def leaf_gaps(low: Tensor, high: Tensor, phi: Tensor, phi_radius: Tensor) -> tuple[Tensor, Tensor]:
     """How far a query box misses each leaf, and its centre: ``(box [..., n, M], centre [..., n, M])``,
     ``<= 0`` where it meets (holds) the leaf.
 
     Args:
+        low, high: ``[n, f, M]`` the leaves' boxes, direction by direction (``cells.low.mT``; contiguous, a
+            compiled step's reduction over the directions runs 4-5x faster than over the boxes' last dim).
         phi, phi_radius: ``[..., f]`` the box's centre and exact radius along the split directions.
     """
-    phi, radius = phi[..., None, None, :], phi_radius[..., None, None, :]  # [..., 1, 1, f]
+    phi, radius = phi[..., None, :, None], phi_radius[..., None, :, None]  # [..., 1, f, 1]
     # float comparisons: much faster than bool ones here
-    box = torch.maximum(cells.low - phi - radius, phi - radius - cells.high).amax(-1)
-    centre = torch.maximum(cells.low - phi, phi - cells.high).amax(-1)
+    box = torch.maximum(low - phi - radius, phi - radius - high).amax(-2)
+    centre = torch.maximum(low - phi, phi - high).amax(-2)
     return box, centre
 
 
@@ -456,7 +458,7 @@ def leaf_bounds(cells: Cells, z_center: Tensor, z_radius: Tensor, phi_radius: Te
     """
     n, n_leaves, width = cells.slopes.shape
     phi = z_center @ cells.directions.T if phi is None else phi
-    gap_out, centre_out = leaf_gaps(cells, phi, phi_radius) if gaps is None else gaps
+    gap_out, centre_out = leaf_gaps(cells.low.mT, cells.high.mT, phi, phi_radius) if gaps is None else gaps
     index = torch.where(centre_out <= 0, cells.score, torch.inf).argmin(-1)  # [..., n]
     flat = index + torch.arange(n, device=index.device) * n_leaves
     # every leaf's model at the query's centre, the features at the middle of their range

@@ -76,6 +76,7 @@ class LocalStep:
         self.product_knots = cells.product_knots
         self.layout = leaf_layout(cells, model._weighted_data)
         self.near_leaves = min(NEAR_LEAVES, n_leaves)
+        self.boxes = (cells.low.mT.contiguous(), cells.high.mT.contiguous())  # [n, f, M]
         self.leaf_rows = model._leaf_rows
         self.row_offset = torch.arange(n, device=scale.device) * n_leaves
         self.widths = (n, model.action_dim, 1, self.n_hinges, self.n_products)
@@ -363,7 +364,7 @@ class LocalStep:
         feature_low, feature_high = torch.cat((feature_low, low), -1), torch.cat((feature_high, high), -1)
         z_center = z_raw * self.inv_scale
         z_radius = torch.cat((g_free.abs().sum(-1) * self.inv_scale_free, torch.zeros_like(action)), dim=-1)
-        gaps = leaf_gaps(cells, phi, phi_radius)
+        gaps = leaf_gaps(*self.boxes, phi, phi_radius)
         near = (gaps[0].detach().topk(self.near_leaves, largest=False).indices  # the leaves met most deeply
                 if torch.compiler.is_compiling() else None)
         distance = leaf_distance(cells, None, z_center.detach(), z_radius.detach(), layout=self.layout, near=near)
