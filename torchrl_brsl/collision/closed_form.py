@@ -159,8 +159,8 @@ def _planar_pair_facets(set_generators: Tensor, obstacle_generators: Tensor) -> 
     g1, g2 = set_generators, obstacle_generators
     h1, h2 = facet_normals(g1), facet_normals(g2)
     own1, own2 = h1 @ g1, h2 @ g2  # [S1, p1, p1], [S2, p2, p2]
-    cross = torch.einsum("...in,...nj->...ij", h1, g2)  # [..., p1, p2]; einsum: one product per owner, not per pair
-    supports = (own1.abs().sum(-1) + cross.abs().sum(-1), own2.abs().sum(-1) + cross.abs().sum(-2))
+    cross = torch.einsum("...in,...nj->...ij", h1, g2).abs_()  # [..., p1, p2]; einsum: one product per owner
+    supports = (own1.abs().sum(-1) + cross.sum(-1), own2.abs().sum(-1) + cross.sum(-2))
     det = (_squared_norm(own1) + _squared_norm(own2)) / 2 + _squared_norm(cross)
     full = det > 16 * torch.finfo(det.dtype).eps * _squared_norm(g1, g2).square()  # tr(G G^T) >= lambda_max
     return PairFacets((h1, h2), supports, full.expand(cross.shape[:-2]))

@@ -468,7 +468,7 @@ def leaf_bounds(cells: Cells, z_center: Tensor, z_radius: Tensor, phi_radius: Te
     prediction = torch.einsum("...kw,kmw->...km", center, cells.slopes) + cells.intercepts  # [..., n, M]
     chosen = prediction.gather(-1, index.unsqueeze(-1))
     slope_gap = cells.slopes - cells.slopes.reshape(n * n_leaves, width)[flat].unsqueeze(-2)  # [..., n, M, d + H]
-    model_gap = (prediction - chosen).abs() + (slope_gap.abs() @ half.unsqueeze(-1)).squeeze(-1)
+    model_gap = (prediction - chosen).abs() + (slope_gap.abs() * half.unsqueeze(-2)).sum(-1)  # fused when compiled
     bound = cells.errors + cells.lipschitz * (distance - cells.delta).clamp_min(0) + model_gap
     errors = torch.where(gap_out <= 0, bound, -torch.inf).amax(-1)
     missed = ~torch.isfinite(errors)  # outside every leaf (not covered): all of them, finite

@@ -353,7 +353,8 @@ class LocalStep:
         cells, n = self.cells, self.state_dim
         z_raw = torch.cat((center.index_select(-1, self.free), action), dim=-1)  # [..., d]
         g_free = generators.index_select(-2, self.free)  # [..., n_F, p] (actions are exact)
-        ranges = (self.projection_free @ g_free).abs().sum(-1)  # exact interval radius per direction [..., F]
+        # the exact interval radius per direction [..., F] (a product summed by hand: fused when compiled)
+        ranges = (self.projection_free[..., None] * g_free.unsqueeze(-3)).sum(-2).abs().sum(-1)
         phi_radius, hinge_radius, factor_radius = ranges.split(self.sizes, -1)
         phi, hinge_center, factor_center = (z_raw @ self.projection - self.knots).split(self.sizes, -1)
         slope, offset_h, feature_low, feature_high = relu_relaxation(hinge_center.unflatten(-1, (n, self.n_hinges)),
