@@ -168,8 +168,9 @@ def test_leaf_distance_matches_a_brute_force_oracle(path):
     n, n_leaves = cells.errors.shape
     near = torch.rand(7, n, n_leaves, generator=gen).argsort(-1)[..., :2] if path == "near" else None
     distance = leaf_distance(cells, points, z, radius, layout=layout, near=near)
-    searched = torch.zeros(7, n, n_leaves, dtype=torch.bool)
-    searched.scatter_(-1, near, True) if near is not None else searched.fill_(True)
+    searched = torch.ones(7, n, n_leaves, dtype=torch.bool)
+    if near is not None:
+        searched = torch.zeros_like(searched).scatter_(-1, near, True)
     looser = 0
     for k in range(n):
         w = cells.weights[k]

@@ -32,8 +32,8 @@ small (without it one of 440 sampled states of a capped multirotor fell outside)
 bound likewise. Unlike the residual box plus noise, the intersection over data points removes
 most of the data's own noise: with many neighbours ``max_j U_k(z_j)`` approaches ``g + (noise
 seen)`` from above instead of ``g + 2 w̄``. For a whole set, ``D`` is bounded by its centre's distance to the
-leaf's data plus its radius (:func:`leaf_distance`): no assumption that the data cover the
-set is needed.
+leaf's data (or to any one of its points) plus its radius (:func:`leaf_distance`): no assumption that the
+data cover the set is needed.
 
 ``L_k`` is the smallest constant consistent with the leaf's data, ``max_{i,j} (|r_ik - r_jk|
 - 2 w̄_k)_+ / ||z_i - z_j||`` over all pairs, times ``lipschitz_margin``, and never below
