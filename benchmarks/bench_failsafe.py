@@ -11,14 +11,18 @@ policy's derivative is not zero), where the constant brake makes every centre on
 (``DataDrivenReach.compile_steps``): the global model's braking tails (one graph for the tail's
 rollout and one for its Jacobian chain, compiled in the untimed first steps), the local model's
 plans with the braking policy's tail in the same compiled loop, and the facet QP's linearisation along
-it (one graph each per policy, compiled when the layer is built); ``--models`` picks the models.
+it (one graph each per policy, compiled when the layer is built); ``--models`` picks the models. ``--parts``
+also times the parts a braking policy adds on the global model, per call (the best of 7 blocks of 100 calls,
+which a loaded machine disturbs least): a plan's centres with its tail, the policy's Jacobian along the tail
+and the centres' Jacobian the adjusters linearise with.
 
-Usage: ``python benchmarks/bench_failsafe.py [--quick] [--compile] [--models global,local]``
+Usage: ``python benchmarks/bench_failsafe.py [--quick] [--compile] [--models global,local] [--parts]``
 """
 from __future__ import annotations
 
 import argparse
 import sys
+import time
 from pathlib import Path
 
 import torch
@@ -27,7 +31,8 @@ sys.path.insert(0, str(Path(__file__).parent))
 import envs  # noqa: E402
 from bench_layer import N_PLAN, TASK, episode_times, stats  # noqa: E402
 from torchrl_brsl.reach import DataDrivenReach, collect_offline_data  # noqa: E402
-from torchrl_brsl.safety import BRSLSafetyLayer, FacetQPAdjuster, Failsafe, GradientAdjuster  # noqa: E402
+from torchrl_brsl.safety import BRSLSafetyLayer, FacetQPAdjuster, Failsafe, GradientAdjuster, PlanChecker  # noqa: E402
+from torchrl_brsl.safety.adjust import _brake_jacobian, _feedback_jacobian  # noqa: E402
 from torchrl_brsl.sets import Zonotope  # noqa: E402
 
 
@@ -35,7 +40,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--compile", action="store_true", help="the models compiled (DataDrivenReach.compile_steps)")
-    parser.add_argument("--models", default="global,local", help="comma-separated: global, local")
+    parser.add_argument("--models", default="global,local",
+                        help="comma-separated: global, local (none: only `--parts`)")
+    parser.add_argument("--parts", action="store_true", help="also time the parts a braking policy adds (global model)")
     args = parser.parse_args()
     torch.set_num_threads(1)
     info = envs.safety_info(TASK)
@@ -47,9 +54,11 @@ def main() -> None:
     brakes = {"constant": Failsafe(zero, info.n_brk),
               "policy": Failsafe(zero, info.n_brk, policy=lambda x: zero.to(x).expand(*x.shape[:-1], -1)),
               "linear": Failsafe(zero, info.n_brk, policy=lambda x: zero.to(x) + 1e-9 * x[..., velocity])}
+    models = [method for method in args.models.split(",") if method]
     print(f"{TASK}: n_plan = {N_PLAN}, n_brk = {info.n_brk}, one CPU thread; median / p99 ms per step")
-    print(f"{'':<44}{'constant brake':>16}{'policy':>16}{'linear policy':>16}{'ratios':>12}")
-    for method in args.models.split(","):
+    if models:
+        print(f"{'':<44}{'constant brake':>16}{'policy':>16}{'linear policy':>16}{'ratios':>12}")
+    for method in models:
         reach = DataDrivenReach.from_data(data, noise, translation_invariant_dims=info.position_dims,
                                           max_generators=30, method=method)
         if args.compile:
@@ -67,6 +76,45 @@ def main() -> None:
             (m0, p0), (m1, p1), (m2, p2) = row["constant"], row["policy"], row["linear"]
             print(f"{method + ': ' + label:<44}{m0:>9.2f} /{p0:>5.1f}{m1:>9.2f} /{p1:>5.1f}{m2:>9.2f} /{p2:>5.1f}"
                   f"{m1 / m0:>6.1f}{m2 / m0:>6.1f}")
+    if args.parts:
+        print_parts(info, data, noise, brakes)
+
+
+def best_of_blocks(function, calls: int = 100, blocks: int = 7) -> float:
+    """The fastest block's mean time of ``function()`` in microseconds."""
+    function()
+    best = float("inf")
+    for _ in range(blocks):
+        start = time.perf_counter()
+        for _ in range(calls):
+            function()
+        best = min(best, (time.perf_counter() - start) / calls)
+    return best * 1e6
+
+
+def print_parts(info, data, noise, brakes) -> None:
+    """Per-call times of what a braking policy adds on the global model (a plan at full speed from rest)."""
+    reach = DataDrivenReach.from_data(data, noise, translation_invariant_dims=info.position_dims, max_generators=30,
+                                      method="global")
+    x0 = torch.zeros(1, reach.state_dim, dtype=torch.float64)
+    plan = info.action_high.double().expand(1, N_PLAN, -1)
+    print(f"parts, global model, one plan, best of 7 x 100 calls (us):{'constant brake':>16}{'linear policy':>16}")
+    rows = {}
+    for name in ("constant", "linear"):
+        checker = PlanChecker(reach, brakes[name], N_PLAN + info.n_brk, stop_dims=info.velocity_dims,
+                              stop_slack=0.15, action_low=info.action_low.double(),
+                              action_high=info.action_high.double(), action_dtype=torch.float32)
+        _, centers = checker.rollout(x0, plan)
+        tail_states = centers[:, N_PLAN - 1:-1]
+        rows[name] = {"centres of plan and tail (rollout)": best_of_blocks(lambda: checker.rollout(x0, plan))}
+        if name == "linear":
+            rows[name]["the policy's Jacobian along the tail"] = best_of_blocks(
+                lambda: _brake_jacobian(checker, tail_states))
+            rows[name]["the centres' Jacobian (with the chain)"] = best_of_blocks(
+                lambda: _feedback_jacobian(checker, centers, N_PLAN))
+    for part, value in rows["linear"].items():
+        constant = rows["constant"].get(part)
+        print(f"  {part:<56}{'-' if constant is None else f'{constant:.0f}':>16}{value:>16.0f}")
 
 
 if __name__ == "__main__":

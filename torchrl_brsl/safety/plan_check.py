@@ -327,8 +327,14 @@ class PlanChecker:
         ``(actions [B, steps, m], centers [B, steps, n])`` (:func:`_policy_tail`, through :meth:`run_fused`)."""
         A_T, B_T, k = self.memo(("tail map", center.dtype, center.device), lambda: tuple(
             t.to(center) for t in (self.reach.state_matrix.T, self.reach.input_matrix.T, self.reach.offset)))
-        return self.run_fused(_policy_tail, center, self.failsafe.policy, A_T, B_T, k, self.action_low.to(center),
-                              self.action_high.to(center), self.action_dtype, steps, length=steps)
+        low, high = self._action_bounds(center.device)
+        return self.run_fused(_policy_tail, center, self.failsafe.policy, A_T, B_T, k, low, high, self.action_dtype,
+                              steps, length=steps)
+
+    def _action_bounds(self, device: torch.device) -> tuple[Tensor, Tensor]:
+        """The action bounds in the action dtype on ``device``: ``[m]`` twice (what :func:`_brake_action` clips to)."""
+        return self.memo(("action bounds", device), lambda: tuple(
+            bound.to(device=device, dtype=self.action_dtype) for bound in (self.action_low, self.action_high)))
 
     def run_fused(self, function: Callable, batch: Tensor, *args, length: int) -> Any:
         """``function(batch, *args, fused=...)``, a loop of ``length`` steps: compiled when the model's steps
@@ -392,7 +398,7 @@ class PlanChecker:
         """:meth:`brake` as one function per dtype and device, kept in the memo the checker's subsets share: the
         compiled plan loop keys its graph on the function, so every subset reuses it."""
         def build() -> Callable[[Tensor], Tensor]:
-            low, high = self.action_low.to(like), self.action_high.to(like)
+            low, high = self._action_bounds(like.device)
             policy, action_dtype = self.failsafe.actions, self.action_dtype
             return lambda states: _brake_action(policy, states, low, high, action_dtype)
         return self.memo(("tail brake", like.dtype, like.device), build)
@@ -573,10 +579,10 @@ class Gauge(NamedTuple):
 
 def _brake_action(policy: Callable[[Tensor], Tensor], states: Tensor, low: Tensor, high: Tensor,
                   action_dtype: torch.dtype) -> Tensor:
-    """``policy(states)`` as the robot receives it: clipped to ``[low, high]``, rounded to ``action_dtype``,
-    in the dtype of ``states`` ``[..., n]``: ``[..., m]``."""
-    brake = torch.clamp(policy(states).to(states.dtype), low, high)
-    return brake if action_dtype == brake.dtype else brake.to(action_dtype).to(states.dtype)
+    """``policy(states)`` as the robot receives it, rounded to ``action_dtype`` and clipped to ``[low, high]`` (the
+    bounds in ``action_dtype``), in the dtype of ``states`` ``[..., n]``: ``[..., m]``. Rounding is monotone, so
+    rounding first and clipping to the rounded bounds is clipping first and rounding: one conversion fewer."""
+    return torch.clamp(policy(states).to(action_dtype), low, high).to(states.dtype)
 
 
 def _brake_tangent(policy: Callable[[Tensor], Tensor], states: Tensor, directions: Tensor, low: Tensor,
