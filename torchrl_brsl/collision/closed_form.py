@@ -161,8 +161,8 @@ def _planar_pair_facets(set_generators: Tensor, obstacle_generators: Tensor) -> 
     own1, own2 = h1 @ g1, h2 @ g2  # [S1, p1, p1], [S2, p2, p2]
     cross = torch.einsum("...in,...nj->...ij", h1, g2).abs_()  # [..., p1, p2]; einsum: one product per owner
     supports = (own1.abs().sum(-1) + cross.sum(-1), own2.abs().sum(-1) + cross.sum(-2))
-    det = (_squared_norm(own1) + _squared_norm(own2)) / 2 + _squared_norm(cross)
-    full = det > 16 * torch.finfo(det.dtype).eps * _squared_norm(g1, g2).square()  # tr(G G^T) >= lambda_max
+    floor = 16 * torch.finfo(g1.dtype).eps * _squared_norm(g1, g2).square()  # tr(G G^T) >= lambda_max
+    full = _full_pairs((_squared_norm(own1) + _squared_norm(own2)) / 2, (cross,), floor)
     return PairFacets((h1, h2), supports, full.expand(cross.shape[:-2]))
 
 
@@ -197,8 +197,8 @@ def _spatial_pair_facets(set_generators: Tensor, obstacle_generators: Tensor) ->
     mixed = (x @ _incidence(p1, g1)).mT + z @ _incidence(p2, g2)  # [..., p1, p2]
     mixed = mixed + _triple_rounding(g1, g2)
     supports = (own1.abs().sum(-1) + x.sum(-2), mixed.flatten(-2), own2.abs().sum(-1) + z.sum(-2))
-    det = (_squared_norm(own1) + _squared_norm(own2)) / 3 + _squared_norm(x) + _squared_norm(z)
-    full = det > 16 * torch.finfo(det.dtype).eps * _squared_norm(g1, g2) ** 3
+    floor = 16 * torch.finfo(g1.dtype).eps * _squared_norm(g1, g2) ** 3
+    full = _full_pairs((_squared_norm(own1) + _squared_norm(own2)) / 3, (x, z), floor)
     return PairFacets((h11, None, h22), supports, full.expand(mixed.shape[:-2]), (g1, g2))
 
 
@@ -209,6 +209,20 @@ def _triple_rounding(g1: Tensor, g2: Tensor) -> Tensor:
     total = norms1.sum(-1) + norms2.sum(-1)
     units = (g1.shape[-1] + g2.shape[-1] + 32) * torch.finfo(g1.dtype).eps
     return units * norms1.unsqueeze(-1) * norms2.unsqueeze(-2) * total[..., None, None]
+
+
+def _full_pairs(own: Tensor, mixed: tuple[Tensor, ...], floor: Tensor) -> Tensor:
+    """``det(G G^T) > floor`` per pair, ``det = own + sum ||M||_F^2`` over ``mixed`` (Cauchy–Binet: ``own`` the
+    squared minors of each side's own generators, computed per set and per obstacle, ``mixed`` the pairs' mixed
+    products). The mixed terms only add, so where ``own`` alone clears the floor for every pair (a set that is
+    full-dimensional on its own, as the sets with noise are) the mixed products, the pairs' largest tensors, are
+    not summed: the same answer without a pass over them."""
+    full = own > floor
+    if bool(full.all()):
+        return full
+    for matrix in mixed:
+        own = own + _squared_norm(matrix)
+    return own > floor
 
 
 def _squared_norm(*matrices: Tensor) -> Tensor:
