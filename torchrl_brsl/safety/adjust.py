@@ -411,26 +411,14 @@ def _chain(factors: Tensor, start: Tensor, fused: bool = False) -> tuple[Tensor]
 
 def _brake_jacobian(checker: PlanChecker, states: Tensor) -> Tensor:
     """``d brake / d state`` ``[..., m, n]`` of the braking policy at ``states`` ``[..., n]``, zero where the braking
-    action is clipped to the action bounds. A policy whose output does not depend on the state (autograd records
-    nothing: a constant, a brake saturated here) gets zeros at once. Any other: central differences along every
-    state axis (:meth:`PlanChecker.brake_tangent`'s steps), the action and its ``2 n`` shifted points in one policy
-    call per state, faster than a backward pass per action dim and equal to it to about 1e-11 on a float64
-    policy. That the policy reads the state is learnt once per checker (its memo): the probe is a call of its own."""
-    output_dtype = checker._memo.get(("policy reads the state", states.dtype))
-    if output_dtype is None:
-        with torch.enable_grad():
-            probe = checker.failsafe.policy(states.detach().requires_grad_(True))
-        if not probe.requires_grad:
-            return states.new_zeros(*states.shape[:-1], checker.action_low.shape[-1], states.shape[-1])
-        output_dtype = checker._memo[("policy reads the state", states.dtype)] = probe.dtype
-    n = states.shape[-1]
-    step = (torch.finfo(output_dtype).eps ** (1 / 3) * (1 + states.abs().amax(-1, keepdim=True))).unsqueeze(-1)
-    shifts = step * torch.eye(n, dtype=states.dtype, device=states.device)  # [..., n, n]
-    around = states.unsqueeze(-2)
-    values = checker.failsafe.policy(torch.cat((around, around + shifts, around - shifts), -2)).to(states.dtype)
-    raw, ahead, behind = values.split((1, n, n), dim=-2)  # [..., 1, m], [..., n, m] twice
-    unclipped = (raw > checker.action_low.to(raw)) & (raw < checker.action_high.to(raw))
-    return ((ahead - behind) / (2 * step)).mT * unclipped.mT
+    action is clipped to the action bounds. A policy whose output does not depend on the state
+    (:meth:`PlanChecker.policy_reads_state`: a constant) gets zeros at once; any other
+    :meth:`PlanChecker.brake_tangent` along every state axis (central differences, the local model's way: one
+    policy call on the state and ``2 n`` points around it, faster than a backward pass per action dim, equal to it
+    to about 1e-11 on a float64 policy)."""
+    if not checker.policy_reads_state(states):
+        return states.new_zeros(*states.shape[:-1], checker.action_low.shape[-1], states.shape[-1])
+    return checker.brake_tangent(states)
 
 
 def prepare_linearisation(checker: PlanChecker) -> None:

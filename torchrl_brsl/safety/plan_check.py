@@ -403,9 +403,10 @@ class PlanChecker:
             return lambda states: _brake_action(policy, states, low, high, action_dtype)
         return self.memo(("tail brake", like.dtype, like.device), build)
 
-    def brake_tangent(self, states: Tensor, directions: Tensor) -> Tensor:
+    def brake_tangent(self, states: Tensor, directions: Tensor | None = None) -> Tensor:
         """The braking action's derivative at ``states`` ``[..., n]`` along ``directions`` ``[..., n, k]``:
-        ``[..., m, k]``, zero where the action is clipped to the bounds.
+        ``[..., m, k]``, zero where the action is clipped to the bounds; ``None``: along the state axes, the
+        policy's Jacobian ``[..., m, n]``.
 
         By central differences of the policy (step ``eps^(1/3) (1 + |x|)``, ``eps`` of the policy's output
         dtype), so that it traces into the local model's compiled plan loop, which cannot differentiate
@@ -414,12 +415,24 @@ class PlanChecker:
         """
         return self._tail_brake_tangent(states)(states, directions)
 
-    def _tail_brake_tangent(self, like: Tensor) -> Callable[[Tensor, Tensor], Tensor]:
-        """:meth:`brake_tangent` as one function per dtype and device (as :meth:`_tail_brake`)."""
-        def build() -> Callable[[Tensor, Tensor], Tensor]:
+    def _tail_brake_tangent(self, like: Tensor) -> Callable[[Tensor, Tensor | None], Tensor]:
+        """:meth:`brake_tangent` as one function per dtype and device (as :meth:`_tail_brake`); the policy's output
+        dtype, which sets the step, is read once, from its action at rest."""
+        def build() -> Callable[[Tensor, Tensor | None], Tensor]:
             low, high, policy = self.action_low.to(like), self.action_high.to(like), self.failsafe.policy
-            return lambda states, directions: _brake_tangent(policy, states, directions, low, high)
+            output_dtype = policy(like.new_zeros(1, self.reach.state_dim)).dtype
+            return lambda states, directions: _brake_tangent(policy, states, directions, low, high, output_dtype)
         return self.memo(("tail brake tangent", like.dtype, like.device), build)
+
+    def policy_reads_state(self, states: Tensor) -> bool:
+        """Whether the braking policy's action at ``states`` ``[..., n]`` depends on them (autograd records it; a
+        constant's does not, and its derivative is zero). Once it has, it is taken to always (kept in the memo),
+        which spares the adjusters a probe with autograd per linearisation."""
+        key = ("policy reads the state", states.dtype, states.device)
+        if not self._memo.get(key):
+            with torch.enable_grad():
+                self._memo[key] = self.failsafe.policy(states.detach().requires_grad_(True)).requires_grad
+        return self._memo[key]
 
     def hold(self, like: Tensor) -> Tensor:
         """The open-loop braking action as the robot receives it (clipped to the bounds, rounded to the
@@ -585,21 +598,26 @@ def _brake_action(policy: Callable[[Tensor], Tensor], states: Tensor, low: Tenso
     return torch.clamp(policy(states).to(action_dtype), low, high).to(states.dtype)
 
 
-def _brake_tangent(policy: Callable[[Tensor], Tensor], states: Tensor, directions: Tensor, low: Tensor,
-                   high: Tensor) -> Tensor:
+def _brake_tangent(policy: Callable[[Tensor], Tensor], states: Tensor, directions: Tensor | None, low: Tensor,
+                   high: Tensor, output_dtype: torch.dtype) -> Tensor:
     """:meth:`PlanChecker.brake_tangent` of ``policy``: central differences along each column of ``directions``
-    ``[..., n, k]`` scaled to a step of ``eps^(1/3) (1 + |states|_inf)``; ``[..., m, k]``."""
-    raw = policy(states)  # [..., m]
-    step = torch.finfo(raw.dtype).eps ** (1 / 3) * (1 + states.abs().amax(-1, keepdim=True))  # [..., 1]
-    columns = directions.transpose(-1, -2)  # [..., k, n]
-    size = columns.abs().amax(-1, keepdim=True)
-    scale = step.unsqueeze(-1) / torch.where(size > 0, size, torch.ones_like(size))  # [..., k, 1]
-    shift = scale * columns
-    points = torch.stack((states.unsqueeze(-2) + shift, states.unsqueeze(-2) - shift))  # [2, ..., k, n]
-    ahead, behind = policy(points).to(states.dtype).unbind(0)  # [..., k, m]
-    raw = raw.to(states.dtype)
-    unclipped = (raw > low) & (raw < high)  # [..., m]
-    return ((ahead - behind) / (2 * scale)).transpose(-1, -2) * unclipped.unsqueeze(-1)
+    ``[..., n, k]`` (``None``: the state axes, ``k = n``) scaled to a step of ``eps^(1/3) (1 + |states|_inf)`` (``eps`` of ``output_dtype``, the policy's),
+    the action and its ``2 k`` shifted points in one policy call; ``[..., m, k]``."""
+    step = torch.finfo(output_dtype).eps ** (1 / 3) * (1 + states.abs().amax(-1, keepdim=True))  # [..., 1]
+    if directions is None:  # the state axes: unit columns, no scaling
+        scale = step.unsqueeze(-1)  # [..., 1, 1]
+        shift = scale * torch.eye(states.shape[-1], dtype=states.dtype, device=states.device)
+    else:
+        columns = directions.transpose(-1, -2)  # [..., k, n]
+        size = columns.abs().amax(-1, keepdim=True)
+        scale = step.unsqueeze(-1) / torch.where(size > 0, size, torch.ones_like(size))  # [..., k, 1]
+        shift = scale * columns
+    around = states.unsqueeze(-2).expand(*shift.shape[:-2], 1, -1)
+    values = policy(torch.cat((around, around + shift, around - shift), -2)).to(states.dtype)  # [..., 1 + 2 k, m]
+    k = shift.shape[-2]
+    raw, ahead, behind = values.split((1, k, k), dim=-2)
+    unclipped = (raw > low) & (raw < high)  # [..., 1, m]
+    return ((ahead - behind) / (2 * scale)).mT * unclipped.mT
 
 
 def _policy_tail(center: Tensor, policy: Callable[[Tensor], Tensor], A_T: Tensor, B_T: Tensor, k: Tensor,
