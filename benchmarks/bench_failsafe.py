@@ -32,7 +32,7 @@ import envs  # noqa: E402
 from bench_layer import N_PLAN, TASK, episode_times, stats  # noqa: E402
 from torchrl_brsl.reach import DataDrivenReach, collect_offline_data  # noqa: E402
 from torchrl_brsl.safety import BRSLSafetyLayer, FacetQPAdjuster, Failsafe, GradientAdjuster, PlanChecker  # noqa: E402
-from torchrl_brsl.safety.adjust import _brake_jacobian, _feedback_jacobian  # noqa: E402
+from torchrl_brsl.safety.adjust import _feedback_jacobian  # noqa: E402
 from torchrl_brsl.sets import Zonotope  # noqa: E402
 
 
@@ -109,7 +109,7 @@ def print_parts(info, data, noise, brakes) -> None:
         rows[name] = {"centres of plan and tail (rollout)": best_of_blocks(lambda: checker.rollout(x0, plan))}
         if name == "linear":
             rows[name]["the policy's Jacobian along the tail"] = best_of_blocks(
-                lambda: _brake_jacobian(checker, tail_states))
+                lambda: checker.brake_tangent(tail_states))
             rows[name]["the centres' Jacobian (with the chain)"] = best_of_blocks(
                 lambda: _feedback_jacobian(checker, centers, N_PLAN))
     for part, value in rows["linear"].items():
