@@ -417,11 +417,13 @@ class PlanChecker:
 
     def _tail_brake_tangent(self, like: Tensor) -> Callable[[Tensor, Tensor | None], Tensor]:
         """:meth:`brake_tangent` as one function per dtype and device (as :meth:`_tail_brake`); the policy's output
-        dtype, which sets the step, is read once, from its action at rest."""
+        dtype, which sets the step, is read once, from its action at rest, and the state axes built once."""
         def build() -> Callable[[Tensor, Tensor | None], Tensor]:
             low, high, policy = self.action_low.to(like), self.action_high.to(like), self.failsafe.policy
             output_dtype = policy(like.new_zeros(1, self.reach.state_dim)).dtype
-            return lambda states, directions: _brake_tangent(policy, states, directions, low, high, output_dtype)
+            axes = torch.eye(self.reach.state_dim, dtype=like.dtype, device=like.device)
+            return lambda states, directions: _brake_tangent(policy, states, axes if directions is None else directions,
+                                                             low, high, output_dtype, axes=directions is None)
         return self.memo(("tail brake tangent", like.dtype, like.device), build)
 
     def policy_reads_state(self, states: Tensor) -> bool:
@@ -598,15 +600,16 @@ def _brake_action(policy: Callable[[Tensor], Tensor], states: Tensor, low: Tenso
     return torch.clamp(policy(states).to(action_dtype), low, high).to(states.dtype)
 
 
-def _brake_tangent(policy: Callable[[Tensor], Tensor], states: Tensor, directions: Tensor | None, low: Tensor,
-                   high: Tensor, output_dtype: torch.dtype) -> Tensor:
+def _brake_tangent(policy: Callable[[Tensor], Tensor], states: Tensor, directions: Tensor, low: Tensor,
+                   high: Tensor, output_dtype: torch.dtype, axes: bool = False) -> Tensor:
     """:meth:`PlanChecker.brake_tangent` of ``policy``: central differences along each column of ``directions``
-    ``[..., n, k]`` (``None``: the state axes, ``k = n``) scaled to a step of ``eps^(1/3) (1 + |states|_inf)`` (``eps`` of ``output_dtype``, the policy's),
-    the action and its ``2 k`` shifted points in one policy call; ``[..., m, k]``."""
+    ``[..., n, k]`` scaled to a step of ``eps^(1/3) (1 + |states|_inf)`` (``eps`` of ``output_dtype``, the
+    policy's), the action and its ``2 k`` shifted points in one policy call; ``[..., m, k]``. ``axes``:
+    ``directions`` is the identity ``[n, n]`` (unit columns, no scaling), the policy's Jacobian."""
     step = torch.finfo(output_dtype).eps ** (1 / 3) * (1 + states.abs().amax(-1, keepdim=True))  # [..., 1]
-    if directions is None:  # the state axes: unit columns, no scaling
+    if axes:
         scale = step.unsqueeze(-1)  # [..., 1, 1]
-        shift = scale * torch.eye(states.shape[-1], dtype=states.dtype, device=states.device)
+        shift = scale * directions
     else:
         columns = directions.transpose(-1, -2)  # [..., k, n]
         size = columns.abs().amax(-1, keepdim=True)
