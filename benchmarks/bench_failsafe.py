@@ -14,7 +14,8 @@ plans with the braking policy's tail in the same compiled loop, and the facet QP
 it (one graph each per policy, compiled when the layer is built); ``--models`` picks the models. ``--parts``
 also times the parts a braking policy adds on the global model, per call (the best of 7 blocks of 100 calls,
 which a loaded machine disturbs least): a plan's centres with its tail, the policy's Jacobian along the tail
-and the centres' Jacobian the adjusters linearise with.
+and the centres' Jacobian the adjusters linearise with; with ``--compile``, the model there is compiled too (the
+policy's tail rollout runs as one graph, its Jacobian chain of ``n_brk < 16`` steps stays eager).
 
 Usage: ``python benchmarks/bench_failsafe.py [--quick] [--compile] [--models global,local] [--parts]``
 """
@@ -77,7 +78,7 @@ def main() -> None:
             print(f"{method + ': ' + label:<44}{m0:>9.2f} /{p0:>5.1f}{m1:>9.2f} /{p1:>5.1f}{m2:>9.2f} /{p2:>5.1f}"
                   f"{m1 / m0:>6.1f}{m2 / m0:>6.1f}")
     if args.parts:
-        print_parts(info, data, noise, brakes)
+        print_parts(info, data, noise, brakes, args.compile)
 
 
 def best_of_blocks(function, calls: int = 100, blocks: int = 7) -> float:
@@ -92,13 +93,16 @@ def best_of_blocks(function, calls: int = 100, blocks: int = 7) -> float:
     return best * 1e6
 
 
-def print_parts(info, data, noise, brakes) -> None:
+def print_parts(info, data, noise, brakes, compiled: bool = False) -> None:
     """Per-call times of what a braking policy adds on the global model (a plan at full speed from rest)."""
     reach = DataDrivenReach.from_data(data, noise, translation_invariant_dims=info.position_dims, max_generators=30,
                                       method="global")
+    if compiled:
+        reach.compile_steps()
     x0 = torch.zeros(1, reach.state_dim, dtype=torch.float64)
     plan = info.action_high.double().expand(1, N_PLAN, -1)
-    print(f"parts, global model, one plan, best of 7 x 100 calls (us):{'constant brake':>16}{'linear policy':>16}")
+    title = f"parts, global model{' (compiled)' if compiled else ''}, one plan, best of 7 x 100 calls (us):"
+    print(f"{title:<70}{'constant brake':>16}{'linear policy':>16}")
     rows = {}
     for name in ("constant", "linear"):
         checker = PlanChecker(reach, brakes[name], N_PLAN + info.n_brk, stop_dims=info.velocity_dims,
@@ -114,7 +118,7 @@ def print_parts(info, data, noise, brakes) -> None:
                 lambda: _feedback_jacobian(checker, centers, N_PLAN))
     for part, value in rows["linear"].items():
         constant = rows["constant"].get(part)
-        print(f"  {part:<56}{'-' if constant is None else f'{constant:.0f}':>16}{value:>16.0f}")
+        print(f"  {part:<68}{'-' if constant is None else f'{constant:.0f}':>16}{value:>16.0f}")
 
 
 if __name__ == "__main__":

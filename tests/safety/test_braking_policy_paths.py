@@ -6,6 +6,7 @@ import warnings
 
 import pytest
 import torch
+from torch._dynamo.utils import counters
 
 from torchrl_brsl.reach import DataDrivenReach, DoubleIntegrator
 from torchrl_brsl.safety import FacetQPAdjuster, Failsafe, PlanChecker
@@ -146,11 +147,28 @@ def test_compiled_braking_tail_matches_the_eager_one(checker, n_envs):
     assert len(_compiled(compiled)) == 2  # the tail and the chain, both compiled
 
 
-def test_short_braking_tails_stay_eager(checker):
-    compiled = _checker_on(copy.deepcopy(checker.reach).compile_steps(backend="aot_eager"), checker, checker.horizon)
+@pytest.mark.filterwarnings("error::RuntimeWarning")  # no fallback to eager
+def test_short_braking_tails_roll_out_compiled_and_their_chain_stays_eager(checker):
+    """A tail of ``n_brk = 8`` steps: its rollout is one graph, compiled with the checker for the tails the layer
+    checks (a whole plan's, braking from the state), so no control step compiles; its Jacobian chain is eager."""
+    reach = copy.deepcopy(checker.reach).compile_steps(backend="aot_eager")
+    compiled = _checker_on(reach, checker, checker.horizon)
+    assert len(_compiled(compiled)) == 1  # the tail's rollout, at construction
+    frames = counters["frames"]["ok"]
     x0, plan, *_ = scene()
-    torch.testing.assert_close(compiled.rollout(x0, plan)[1], checker.rollout(x0, plan)[1], rtol=0, atol=0)
-    assert not _compiled(compiled)
+    for got, want in zip(compiled.rollout(x0, plan), checker.rollout(x0, plan)):  # tail of n_brk
+        torch.testing.assert_close(got, want, rtol=0, atol=1e-12)
+    braking = compiled.brake(x0).unsqueeze(1)
+    for got, want in zip(compiled.rollout(x0, braking), checker.rollout(x0, braking)):  # tail of horizon - 1
+        torch.testing.assert_close(got, want, rtol=0, atol=1e-12)
+    assert counters["frames"]["ok"] == frames  # compiled when the checker was built
+    centres = checker.rollout(x0, plan * 0.5)[1]
+    chains = [_feedback_jacobian(on, centres, N_PLAN) for on in (compiled, checker)]
+    torch.testing.assert_close(*chains, rtol=0, atol=0)  # the chain ran eagerly: the same operations
+    assert len(_compiled(compiled)) == 1
+    plan = plan.clone().requires_grad_(True)  # under autograd the tail runs eagerly (no backward graph to compile)
+    compiled.rollout(x0, plan)[1].sum().backward()
+    assert counters["frames"]["ok"] == frames and plan.grad is not None
 
 
 def test_a_failing_compilation_warns_and_runs_eagerly(checker):

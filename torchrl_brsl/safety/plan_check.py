@@ -26,8 +26,15 @@ DEFAULT_STOP_SLACK = 0.15
 """``stop_slack`` when neither it nor ``stop_tolerance`` is given (units of the stop dims, e.g. m/s)."""
 
 FUSE_FROM_STEPS = 16
-"""With compiled steps, braking tails of at least this many steps run as one graph (:meth:`PlanChecker.run_fused`):
-on one CPU thread a compiled tail of 6 steps costs what the eager loop does, one of 47 steps a quarter to a half."""
+"""With compiled steps, a braking tail's Jacobian chain of at least this many steps runs as one graph
+(:meth:`PlanChecker.run_fused`): on one CPU thread a compiled chain of 6 steps costs what the eager loop does, one of
+47 steps a quarter to a half."""
+
+TAIL_FUSE_FROM_STEPS = 2
+"""With compiled steps, a braking policy's rollout of at least this many steps runs as one graph: each eager step
+calls the policy and rounds, clips and maps its action (a few operations each), so even a tail of 6 steps (the
+Turtlebot's) ran 1.6x faster compiled on one CPU thread (``benchmarks/bench_failsafe.py --models "" --parts
+--compile``)."""
 
 MIN_SET_RADIUS = 1e-6
 """Half-width (state units) of the box added to every plan-dependent set's obstacle-space projection."""
@@ -160,11 +167,8 @@ class PlanChecker:
         self._domain_radius = (torch.cat((errors.new_zeros(1, errors.shape[1]), errors[:-1].abs().sum(-1)))
                                if reach.bounded_domain and not self.plan_dependent else None)
         if reach.compile_options is not None and failsafe.policy is not None and (
-                self.plan_dependent or self.horizon - 1 >= FUSE_FROM_STEPS):
-            with torch.no_grad():  # compile the braking tail now (the local model's: in the plan's loop), not at a
-                rest = self.action_low.new_zeros(1, reach.state_dim)  # control step
-                rollout = self.rollout_sets if self.plan_dependent else self.rollout
-                rollout(rest, self.hold(rest).view(1, 1, -1))
+                self.plan_dependent or self.horizon - 1 >= TAIL_FUSE_FROM_STEPS):
+            self._warm_up_tails()
         vacuous = self.vacuous_stop_dims()
         if vacuous:
             top, tolerance = self._top_speed(), self._stop_tolerance_at_rest()
@@ -329,17 +333,31 @@ class PlanChecker:
             t.to(center) for t in (self.reach.state_matrix.T, self.reach.input_matrix.T, self.reach.offset)))
         low, high = self._action_bounds(center.device)
         return self.run_fused(_policy_tail, center, self.failsafe.policy, A_T, B_T, k, low, high, self.action_dtype,
-                              steps, length=steps)
+                              steps, length=steps, fuse_from=TAIL_FUSE_FROM_STEPS)
 
     def _action_bounds(self, device: torch.device) -> tuple[Tensor, Tensor]:
         """The action bounds in the action dtype on ``device``: ``[m]`` twice (what :func:`_brake_action` clips to)."""
         return self.memo(("action bounds", device), lambda: tuple(
             bound.to(device=device, dtype=self.action_dtype) for bound in (self.action_low, self.action_high)))
 
-    def run_fused(self, function: Callable, batch: Tensor, *args, length: int) -> Any:
+    def _warm_up_tails(self) -> None:
+        """Compile the braking policy's tail now, not at a control step: the local model's in the plan's loop, the
+        global model's for the tails the layer checks (braking from the state, a plan of ``horizon - n_brk``
+        steps; each length is a graph of its own)."""
+        rest = self.action_low.new_zeros(1, self.reach.state_dim)
+        lengths = [1] if self.plan_dependent else sorted({1, self.horizon - self.failsafe.n_brk} & set(
+            range(1, self.horizon)))
+        with torch.no_grad():
+            for length in lengths:
+                rollout = self.rollout_sets if self.plan_dependent else self.rollout
+                rollout(rest, self.hold(rest).view(1, 1, -1).expand(1, length, -1))
+
+    def run_fused(self, function: Callable, batch: Tensor, *args, length: int,
+                  fuse_from: int = FUSE_FROM_STEPS) -> Any:
         """``function(batch, *args, fused=...)``, a loop of ``length`` steps: compiled when the model's steps
-        are (:attr:`~torchrl_brsl.reach.DataDrivenReach.compile_options`) and the loop has at least
-        :data:`FUSE_FROM_STEPS` steps, with ``fused=True``, else eagerly.
+        are (:attr:`~torchrl_brsl.reach.DataDrivenReach.compile_options`), the loop has at least ``fuse_from``
+        steps and no input needs gradients (a compiled backward would compile a graph of its own at a control
+        step), with ``fused=True``, else eagerly.
 
         A loop over the braking tail costs a few operations per step eagerly; compiled, it is one
         graph (one per value of the non-tensor arguments, e.g. the tail's length), whose call has a
@@ -351,7 +369,10 @@ class PlanChecker:
         compilation that fails warns and runs eagerly from then on.
         """
         options = self.reach.compile_options
-        if options is None or length < FUSE_FROM_STEPS or self._memo.get(("eager", function)) or not len(batch):
+        differentiable = torch.is_grad_enabled() and any(
+            isinstance(t, Tensor) and t.requires_grad for t in (batch, *args))
+        if (options is None or length < fuse_from or differentiable or self._memo.get(("eager", function))
+                or not len(batch)):
             return function(batch, *args)
         try:
             compiled = self.memo(("compiled", function, repr(sorted(options.items()))),
@@ -360,7 +381,8 @@ class PlanChecker:
             padded = batch.expand(2, *batch.shape[1:]) if count < 2 else batch
             padded = padded.contiguous() if padded._base is None else padded.clone()
             torch._dynamo.mark_dynamic(padded, 0)
-            return tuple(t[:count] for t in compiled(padded, *args, fused=True))
+            with torch.no_grad():  # one graph, whatever the caller's grad mode (nothing here needs gradients)
+                return tuple(t[:count] for t in compiled(padded, *args, fused=True))
         except Exception as error:  # the compiler's failure must not stop a control loop
             warn_fallback(f"the compiled {function.__name__}", error)
             self._memo[("eager", function)] = True
