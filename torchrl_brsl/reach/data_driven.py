@@ -439,14 +439,16 @@ class DataDrivenReach(nn.Module):
         sound bounds of their inputs). A plan's sets without
         gradients (checking and both adjusters' linearisation, with a braking policy's tail too) run as
         one compiled loop, 7-9x faster than eager at batch 1; single steps (gradients) 2-5x
-        (``benchmarks/bench_compiled_step.py``). The warm-up's four graphs take
-        about a minute per model on a 2-core CPU, in every process: the plan's loops are not served
-        by the on-disk cache. ``warm_up`` compiles the checking and the linearisation graphs here, on two
-        offline states, so that no control step stalls on it (the graphs of gradients through the
-        steps, which the adjusters take only for obstacles checked by the LP, compile on first use). A
-        global model's steps are one affine map and stay eager: it records the choice for the rollout
-        of a braking policy's tail
-        (:class:`~torchrl_brsl.safety.PlanChecker`), which follows it (:attr:`compile_options`).
+        (``benchmarks/bench_compiled_step.py``). The warm-up's four graphs take minutes, in every
+        process: on one CPU core the bicycle's body-frame model took 193 s with an empty on-disk cache
+        and 90 s with a full one. Inductor (torch 2.13) does not cache a graph that holds a
+        ``while_loop``, so each process traces the plan's loops on symbolic batch sizes and generates
+        their code again; only the single steps' two graphs come from the cache. ``warm_up``
+        compiles the checking and the linearisation graphs here, on two offline states, so that no
+        control step stalls on it (the graphs of gradients through the steps, which the adjusters
+        take only for obstacles checked by the LP, compile on first use). A global model's steps are
+        one affine map and stay eager: it records the choice for the rollout of a braking policy's
+        tail (:class:`~torchrl_brsl.safety.PlanChecker`), which follows it (:attr:`compile_options`).
 
         Calling it again with the same arguments keeps the compiled graphs.
 
