@@ -1,6 +1,7 @@
 """The compiled step of the local model (``DataDrivenReach.compile_steps``): the eager sets, sound, and
 never a crash when the compiler fails. Most tests trace with the ``aot_eager`` backend (the same
 capture, guards and symbolic shapes, no code generation); one runs the default backend."""
+import copy
 import re
 import shutil
 
@@ -21,6 +22,15 @@ def bicycle():
     model = fit(system, 400, method="local", max_generators=24, body_frame=system.body_frame)
     yield system, model
     model.compile_steps(False)
+
+
+@pytest.fixture(scope="module")
+def traced(bicycle):
+    """``(system, eager, compiled)``: copies of the bicycle's model, eager and traced with ``aot_eager`` (one
+    warm-up for the tests that compare the compiled paths with the eager ones)."""
+    system, model = bicycle
+    eager = copy.deepcopy(model).compile_steps(False)
+    return system, eager, copy.deepcopy(eager).compile_steps(backend="aot_eager")
 
 
 def _sets(model, x0, plans):
@@ -66,15 +76,14 @@ def test_compiled_steps_give_the_eager_sets_and_the_sampling_has_teeth(bicycle):
     assert _step_of(model)._compiled_loop is not None
 
 
-def test_compiled_tangents_and_gradients_are_the_eager_ones(bicycle):
-    system, model = bicycle
+def test_compiled_tangents_and_gradients_are_the_eager_ones(traced):
+    system, eager_model, compiled_model = traced
     x0, plans, _ = random_plans(system, n_plans=4, horizon=6)
     generators = x0.new_zeros(4, x0.shape[-1], 0)
     tangents = (torch.randn(4, x0.shape[-1], 3, dtype=x0.dtype), torch.randn(4, 2, 3, dtype=x0.dtype))
     plan_tangents = (tangents[0], torch.randn(4, 6, 2, 3, dtype=x0.dtype))  # every action's directions
     results = []
-    for kwargs in (None, dict(backend="aot_eager")):
-        model.compile_steps(**kwargs) if kwargs else model.compile_steps(False)
+    for model in (eager_model, compiled_model):
         moved = model.step_sets(x0, generators, plans[:, 0], tangents)[-1]
         along_plan = model.reach_covered(Zonotope.from_point(x0), plans, plan_tangents)[-1]  # [4, 6, n, 3]
         start, plan = x0.clone().requires_grad_(True), plans.clone().requires_grad_(True)
@@ -83,20 +92,20 @@ def test_compiled_tangents_and_gradients_are_the_eager_ones(bicycle):
     for compiled, eager in zip(results[1], results[0]):
         torch.testing.assert_close(compiled, eager, rtol=1e-9, atol=1e-12)
     assert _step_of(model)._compiled is not None and _step_of(model)._compiled_loop is not None
+    assert _step_of(eager_model)._compiled is None and _step_of(eager_model)._compiled_loop is None
     # the plan's tangents are the steps' chained: the first step's are those of the single step
     torch.testing.assert_close(results[0][1][:, 0], model.step_sets(
         x0, generators, plans[:, 0], (tangents[0], plan_tangents[1][:, 0]))[-1], rtol=1e-12, atol=1e-14)
 
 
-def test_a_braking_policys_tail_runs_in_the_plans_loop(bicycle):
+def test_a_braking_policys_tail_runs_in_the_plans_loop(traced):
     """``reach_covered(..., brake=(policy, steps))``: the tail's actions are the policy's at each set's centre, the
     same as eagerly, and the sets are those of the plan followed by those actions (whose soundness the sampling
     tests show)."""
-    system, model = bicycle
+    system, eager_model, model = traced
     x0, plans, _ = random_plans(system, n_plans=5, horizon=4)
     initial = Zonotope.from_point(x0)
-    eager = model.compile_steps(False).reach_covered(initial, plans, brake=(system.braking, 6))
-    model.compile_steps(backend="aot_eager")
+    eager = eager_model.reach_covered(initial, plans, brake=(system.braking, 6))
     frames = counters["frames"]["ok"]
     for batch in (5, 3):  # the policy's graph compiles once, for every batch
         compiled = model.reach_covered(Zonotope.from_point(x0[:batch]), plans[:batch], brake=(system.braking, 6))
@@ -113,11 +122,11 @@ def test_a_braking_policys_tail_runs_in_the_plans_loop(bicycle):
         fit(system, 200, method="global").reach_covered(initial, plans, brake=(system.braking, 2))
 
 
-def test_a_braking_policys_tail_is_linearised_in_the_plans_loop(bicycle):
+def test_a_braking_policys_tail_is_linearised_in_the_plans_loop(traced):
     """``reach_covered(..., tangents, brake=(policy, steps, policy_tangent))``: compiled, one graph for every batch
     with the eager directions, sets and actions; the tail's actions move with the centres (the policy's
     derivative fed back), and without that feedback the directions differ."""
-    system, model = bicycle
+    system, eager_model, model = traced
     x0, plans, _ = random_plans(system, n_plans=4, horizon=3)
     gen = torch.Generator().manual_seed(3)
     tangents = (torch.randn(4, 4, 2, generator=gen, dtype=x0.dtype), torch.randn(4, 3, 2, 2, generator=gen,
@@ -132,8 +141,7 @@ def test_a_braking_policys_tail_is_linearised_in_the_plans_loop(bicycle):
         return rows.transpose(-1, -2) @ directions
 
     brake = (policy, 5, policy_tangent)
-    eager = model.compile_steps(False).reach_covered(Zonotope.from_point(x0), plans, tangents, brake)
-    model.compile_steps(backend="aot_eager")
+    eager = eager_model.reach_covered(Zonotope.from_point(x0), plans, tangents, brake)
     frames = counters["frames"]["ok"]
     for batch in (4, 2):
         compiled = model.reach_covered(Zonotope.from_point(x0[:batch]), plans[:batch],
