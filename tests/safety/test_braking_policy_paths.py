@@ -148,6 +148,24 @@ def test_compiled_braking_tail_matches_the_eager_one(checker, n_envs):
 
 
 @pytest.mark.filterwarnings("error::RuntimeWarning")  # no fallback to eager
+def test_the_adjusters_prepare_the_long_tails_jacobian_chain(checker):
+    """A checker whose tail has ``FUSE_FROM_STEPS`` or more steps: the adjuster's ``prepare`` compiles the chain
+    along it, so the first linearisation of a plan compiles nothing."""
+    reach = copy.deepcopy(checker.reach).compile_steps(backend="aot_eager")
+    failsafe = Failsafe(torch.zeros(2, dtype=D), FUSE_FROM_STEPS + 2, policy=brake_policy)
+    long = PlanChecker(reach, failsafe, N_PLAN + failsafe.n_brk, stop_dims=(2, 3), stop_slack=0.3,
+                       action_low=checker.action_low, action_high=checker.action_high)
+    assert len(_compiled(long)) == 1  # the tail's rollout, at construction
+    FacetQPAdjuster().prepare(long)
+    assert len(_compiled(long)) == 2  # and its Jacobian chain
+    frames = counters["frames"]["ok"]
+    x0, plan, *_ = scene()
+    centres = long.rollout(x0, plan * 0.5)[1]
+    assert bool(_feedback_jacobian(long, centres, N_PLAN).isfinite().all())
+    assert counters["frames"]["ok"] == frames
+
+
+@pytest.mark.filterwarnings("error::RuntimeWarning")  # no fallback to eager
 def test_short_braking_tails_roll_out_compiled_and_their_chain_stays_eager(checker):
     """A tail of ``n_brk = 8`` steps: its rollout is one graph, compiled with the checker for the tails the layer
     checks (a whole plan's, braking from the state), so no control step compiles; its Jacobian chain is eager."""

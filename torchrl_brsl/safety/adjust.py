@@ -7,7 +7,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchrl_brsl.safety.plan_check import AffineRollout, Gauge, PlanChecker, PlanEvaluation
+from torchrl_brsl.safety.plan_check import FUSE_FROM_STEPS, AffineRollout, Gauge, PlanChecker, PlanEvaluation
 from torchrl_brsl.sets import Obstacles, Zonotope
 
 
@@ -423,14 +423,22 @@ def _brake_jacobian(checker: PlanChecker, states: Tensor) -> Tensor:
 
 def prepare_linearisation(checker: PlanChecker) -> None:
     """Compile the linearisation the adjusters run on ``checker``, so that no control step stalls on it: with a
-    compiled local model and a braking policy, the plan's loop with the policy's tangents (about 30 s on a
-    2-core CPU; the constant brake's is compiled by :meth:`~torchrl_brsl.reach.DataDrivenReach.compile_steps`).
-    Otherwise nothing."""
-    if checker.plan_dependent and checker.failsafe.policy is not None and checker.reach.compile_options is not None:
-        rest = checker.action_low.new_zeros(1, checker.reach.state_dim)
-        plan = checker.hold(rest).expand(1, min(2, checker.horizon), -1)  # >= 2 directions: one graph for all
-        with torch.no_grad():
+    compiled model and a braking policy, the local model's plan loop with the policy's tangents (about 30 s on a
+    2-core CPU; the constant brake's is compiled by :meth:`~torchrl_brsl.reach.DataDrivenReach.compile_steps`), or
+    the global model's Jacobian chain along a tail of :data:`~torchrl_brsl.safety.plan_check.FUSE_FROM_STEPS` or
+    more steps (a plan of ``horizon - n_brk`` steps, linearised at rest: where the policy's derivative vanishes
+    there, the chain compiles at the first step that needs it). Otherwise nothing."""
+    if checker.failsafe.policy is None or checker.reach.compile_options is None:
+        return
+    rest = checker.action_low.new_zeros(1, checker.reach.state_dim)
+    steps = checker.horizon - checker.failsafe.n_brk
+    with torch.no_grad():
+        if checker.plan_dependent:
+            plan = checker.hold(rest).expand(1, min(2, checker.horizon), -1)  # >= 2 directions: one graph for all
             _leaf_rollout(checker, rest, plan)
+        elif steps >= 1 and checker.failsafe.n_brk >= FUSE_FROM_STEPS:
+            plan = checker.hold(rest).expand(1, steps, -1).to(checker.reach.state_matrix.dtype)
+            _feedback_jacobian(checker, checker.rollout(rest.to(plan), plan)[1], steps)
 
 
 def _leaf_rollout(checker: PlanChecker, x0: Tensor, plan: Tensor) -> tuple[Tensor, Zonotope, Tensor, Tensor]:

@@ -347,9 +347,9 @@ class PlanChecker:
         rest = self.action_low.new_zeros(1, self.reach.state_dim)
         lengths = [1] if self.plan_dependent else sorted({1, self.horizon - self.failsafe.n_brk} & set(
             range(1, self.horizon)))
+        rollout = self.rollout_sets if self.plan_dependent else self.rollout
         with torch.no_grad():
             for length in lengths:
-                rollout = self.rollout_sets if self.plan_dependent else self.rollout
                 rollout(rest, self.hold(rest).view(1, 1, -1).expand(1, length, -1))
 
     def run_fused(self, function: Callable, batch: Tensor, *args, length: int,
