@@ -1,4 +1,6 @@
 """Shared helpers of the reachability tests: fit an example system, sample it along random plans."""
+import copy
+
 import torch
 
 from torchrl_brsl.reach import DataDrivenReach, sample_reach
@@ -9,6 +11,19 @@ def fit(system, num, seed=0, **kwargs):
     x, xp, u = system.offline_data(num, gen)
     return DataDrivenReach.fit(x, xp, u, system.noise, translation_invariant_dims=system.translation_invariant_dims,
                                **kwargs)
+
+
+_SHARED = {}
+
+
+def shared_fit(system, num, seed=0, **kwargs):
+    """:func:`fit`, computed once per test process for the same system class, data and options; a deep copy each call
+    (a test may change its model). Only for tests that patch nothing the fit reads (the hinge selection's constants, its
+    functions): their fits would be the unpatched ones."""
+    key = (type(system).__qualname__, num, seed, repr(sorted(kwargs.items())))
+    if key not in _SHARED:
+        _SHARED[key] = fit(system, num, seed, **kwargs)
+    return copy.deepcopy(_SHARED[key])
 
 
 def random_plans(system, n_plans=20, horizon=10, seed=1, spread=0.7):

@@ -6,7 +6,7 @@ from torchrl_brsl.reach import BodyFrame, DataDrivenReach, KinematicBicycle, Uni
 from torchrl_brsl.reach import cells, hinges
 from torchrl_brsl.sets import Zonotope
 
-from reach_support import fit, sampled
+from reach_support import sampled, shared_fit
 
 SYSTEMS = {"bicycle": KinematicBicycle, "unicycle": Unicycle}
 
@@ -63,7 +63,7 @@ CLAIMED = [("bicycle", 500, 0, 0.5), ("bicycle", 500, 1, 0.5), ("bicycle", 2000,
 @pytest.mark.parametrize("name, num, seed, min_claimed", CLAIMED)
 def test_sampled_true_states_lie_in_the_body_frame_sets(name, num, seed, min_claimed):
     system = SYSTEMS[name]()
-    result = sampled(system, fit(system, num, seed=seed, body_frame=system.body_frame))
+    result = sampled(system, shared_fit(system, num, seed=seed, body_frame=system.body_frame))
     assert result.covered.float().mean() >= min_claimed, f"{int(result.covered.sum())} of 20 plans claimed"
     assert result.violations == 0, f"{result.violations} of {result.checked} sampled states outside their sets"
 
@@ -72,7 +72,7 @@ def test_a_weakened_body_frame_bound_is_caught_by_the_sampling():
     """Teeth: the leaves' error intervals scaled by 0.3 let sampled states out (measured: 83 of
     51,000 on the bicycle with 500 steps; with 2,000 none, the bound has that slack there)."""
     system = KinematicBicycle()
-    reach = fit(system, 500, body_frame=system.body_frame)
+    reach = shared_fit(system, 500, body_frame=system.body_frame)
     reach.cell_errors.mul_(0.3)
     assert sampled(system, reach).violations > 0
 
@@ -82,14 +82,14 @@ def test_the_body_frame_is_tighter_on_the_bicycle():
     500 steps, 4.2 against 7.0 with 2,000 (5.6 with the data of seed 1 and 500 steps)."""
     system = KinematicBicycle()
     for num, limit in ((500, 5.5), (2000, 5.0)):
-        body = sampled(system, fit(system, num, body_frame=system.body_frame)).median_ratio
-        world = sampled(system, fit(system, num)).median_ratio
+        body = sampled(system, shared_fit(system, num, body_frame=system.body_frame)).median_ratio
+        world = sampled(system, shared_fit(system, num)).median_ratio
         assert body < limit and body < 0.7 * world, (num, body, world)
 
 
 def test_the_body_frame_survives_save_and_load(tmp_path):
     system = KinematicBicycle()
-    reach = fit(system, 500, body_frame=system.body_frame)
+    reach = shared_fit(system, 500, body_frame=system.body_frame)
     reach.save(tmp_path / "reach.pt")
     loaded = DataDrivenReach.load(tmp_path / "reach.pt")
     assert loaded.body_frame == system.body_frame
@@ -100,7 +100,7 @@ def test_the_body_frame_survives_save_and_load(tmp_path):
 
 def test_body_frame_sets_are_differentiable_in_the_plan():
     system = KinematicBicycle()
-    reach = fit(system, 500, body_frame=system.body_frame)
+    reach = shared_fit(system, 500, body_frame=system.body_frame)
     plan = torch.full((1, 5, 2), 0.2, dtype=torch.float64, requires_grad=True)
     sets = reach.reach(Zonotope.from_point(torch.tensor([[0.0, 0.0, 1.0, 0.7]], dtype=torch.float64)), plan)
     (sets.center[..., :2].sum() + sets.generators.abs().sum()).backward()

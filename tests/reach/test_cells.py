@@ -8,7 +8,7 @@ from torchrl_brsl.reach import (DataDrivenReach, DoubleIntegrator, KinematicBicy
                                 leaf_distance, leaf_layout, point_bounds)
 from torchrl_brsl.sets import Zonotope
 
-from reach_support import fit, random_plans, sampled
+from reach_support import fit, random_plans, sampled, shared_fit
 
 SYSTEMS = {"bicycle": KinematicBicycle, "saturated_point": SaturatedThrustPoint, "double_integrator": DoubleIntegrator}
 
@@ -18,7 +18,7 @@ SYSTEMS = {"bicycle": KinematicBicycle, "saturated_point": SaturatedThrustPoint,
 def test_sampled_true_states_lie_in_the_local_sets(name, num):
     """Every sampled state of every plan the model claims lies in its set (6 x up to 60,000 states)."""
     system = SYSTEMS[name]()
-    result = sampled(system, fit(system, num))
+    result = sampled(system, shared_fit(system, num))
     assert result.covered.float().mean() >= 0.5, "most random plans of the data region should be claimed"
     assert result.violations == 0, f"{result.violations} of {result.checked} sampled states outside their sets"
 
@@ -29,7 +29,7 @@ def test_a_weakened_error_bound_is_caught_by_the_sampling():
     caught = {}
     for name, system_type in SYSTEMS.items():
         system = system_type()
-        reach = fit(system, 2000)
+        reach = shared_fit(system, 2000)
         reach.cell_errors.mul_(0.3)
         caught[name] = sampled(system, reach).violations
     assert sum(caught.values()) > 0, caught
@@ -74,7 +74,7 @@ def test_held_out_check_warns_where_the_data_are_sparse_and_widens_those_leaves(
 def test_point_bounds_are_the_one_step_sets_of_a_point():
     """The held-out check's bounds at single inputs are what a one-step set from that point says."""
     system = SaturatedThrustPoint()
-    reach = fit(system, 500)
+    reach = shared_fit(system, 500)
     x, _, u = system.offline_data(50, torch.Generator().manual_seed(3))
     sets, covered = reach.reach_covered(Zonotope.from_point(x), u.unsqueeze(1))
     z = torch.cat((x[:, reach.free_dims], u), dim=-1) / reach.input_scale
@@ -94,14 +94,14 @@ def test_local_sets_are_much_tighter_than_the_global_fit():
     """
     for name, limit in (("saturated_point", 6.5), ("double_integrator", 4.5), ("bicycle", 9.0)):
         system = SYSTEMS[name]()
-        local = sampled(system, fit(system, 2000)).median_ratio
+        local = sampled(system, shared_fit(system, 2000)).median_ratio
         global_ = sampled(system, fit(system, 2000, method="global")).median_ratio
         assert local < limit and local < global_ / 3, (name, local, global_)
 
 
 def test_a_plan_leaving_the_data_is_not_covered():
     system = SaturatedThrustPoint()
-    reach = fit(system, 500)
+    reach = shared_fit(system, 500)
     # the data span |v| <= 2 per axis, the leaves 25 % of that range beyond: 3.5 m/s is outside
     push = torch.tensor([1.0, 0.0], dtype=torch.float64).expand(1, 10, 2)
     _, covered = reach.reach_covered(Zonotope.from_point(torch.tensor([[0.0, 0.0, 3.5, 0.0]], dtype=torch.float64)),
@@ -127,7 +127,7 @@ def test_local_model_is_the_default_and_survives_save_and_load(tmp_path):
 
 def test_sets_are_differentiable_in_the_plan():
     system = SaturatedThrustPoint()
-    reach = fit(system, 500)
+    reach = shared_fit(system, 500)
     x0, plans, _ = random_plans(system, n_plans=2)
     plans.requires_grad_(True)
     reach.reach(Zonotope.from_point(x0), plans).center[..., :2].sum().backward()
@@ -159,7 +159,7 @@ def test_leaf_distance_matches_a_brute_force_oracle(path):
     the data grouped by leaf (:func:`leaf_layout`, the step's path); searching ``near`` leaves only,
     those are exact and the others upper bounds through their representative point."""
     system = SaturatedThrustPoint()
-    reach = fit(system, 500)
+    reach = shared_fit(system, 500)
     cells, points = reach._cells, reach._scaled_data
     gen = torch.Generator().manual_seed(3)
     z = points[:7] + 0.2 * torch.randn(7, points.shape[1], generator=gen, dtype=torch.float64)
