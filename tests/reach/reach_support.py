@@ -17,10 +17,10 @@ _SHARED = {}
 
 
 def shared_fit(system, num, seed=0, **kwargs):
-    """:func:`fit`, computed once per test process for the same system class, data and options; a deep copy each call
-    (a test may change its model). Only for tests that patch nothing the fit reads (the hinge selection's constants, its
-    functions): their fits would be the unpatched ones."""
-    key = (type(system).__qualname__, num, seed, repr(sorted(kwargs.items())))
+    """:func:`fit`, computed once per test process for the same system (class and parameters), data and options; a deep
+    copy each call (a test may change its model). Only for tests that patch nothing the fit reads (the hinge selection's
+    constants, its functions): their fits would be the unpatched ones."""
+    key = (type(system).__qualname__, repr(sorted(vars(system).items())), num, seed, repr(sorted(kwargs.items())))
     if key not in _SHARED:
         _SHARED[key] = fit(system, num, seed, **kwargs)
     return copy.deepcopy(_SHARED[key])
