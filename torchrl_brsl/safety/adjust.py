@@ -426,12 +426,12 @@ def prepare_linearisation(checker: PlanChecker) -> None:
     compiled model and a braking policy, the local model's plan loop with the policy's tangents (about 30 s on a
     2-core CPU; the constant brake's is compiled by :meth:`~torchrl_brsl.reach.DataDrivenReach.compile_steps`), or
     the global model's Jacobian chain along a tail of :data:`~torchrl_brsl.safety.plan_check.FUSE_FROM_STEPS` or
-    more steps (a plan of ``horizon - n_brk`` steps, linearised at rest: where the policy's derivative vanishes
-    there, the chain compiles at the first step that needs it). Otherwise nothing."""
+    more steps (a plan of :attr:`~torchrl_brsl.safety.PlanChecker.plan_steps` steps, linearised at rest: where the
+    policy's derivative vanishes there, the chain compiles at the first step that needs it). Otherwise nothing."""
     if checker.failsafe.policy is None or checker.reach.compile_options is None:
         return
     rest = checker.action_low.new_zeros(1, checker.reach.state_dim)
-    steps = checker.horizon - checker.failsafe.n_brk
+    steps = checker.plan_steps
     with torch.no_grad():
         if checker.plan_dependent:
             plan = checker.hold(rest).expand(1, min(2, checker.horizon), -1)  # >= 2 directions: one graph for all

@@ -342,11 +342,10 @@ class PlanChecker:
 
     def _warm_up_tails(self) -> None:
         """Compile the braking policy's tail now, not at a control step: the local model's in the plan's loop, the
-        global model's for the tails the layer checks (braking from the state, a plan of ``horizon - n_brk``
-        steps; each length is a graph of its own)."""
+        global model's for the tails the layer checks (braking from the state, a plan of :attr:`plan_steps` steps;
+        each length is a graph of its own)."""
         rest = self.action_low.new_zeros(1, self.reach.state_dim)
-        lengths = [1] if self.plan_dependent else sorted({1, self.horizon - self.failsafe.n_brk} & set(
-            range(1, self.horizon)))
+        lengths = [1] if self.plan_dependent else sorted(n for n in {1, self.plan_steps} if n < self.horizon)
         rollout = self.rollout_sets if self.plan_dependent else self.rollout
         with torch.no_grad():
             for length in lengths:
@@ -457,6 +456,11 @@ class PlanChecker:
             with torch.enable_grad():
                 self._memo[key] = self.failsafe.policy(states.detach().requires_grad_(True)).requires_grad
         return self._memo[key]
+
+    @property
+    def plan_steps(self) -> int:
+        """The most steps a checked plan has before its braking tail: ``horizon - n_brk``."""
+        return self.horizon - self.failsafe.n_brk
 
     def hold(self, like: Tensor) -> Tensor:
         """The open-loop braking action as the robot receives it (clipped to the bounds, rounded to the
