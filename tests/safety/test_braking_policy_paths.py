@@ -166,6 +166,22 @@ def test_the_adjusters_prepare_the_long_tails_jacobian_chain(checker):
 
 
 @pytest.mark.filterwarnings("error::RuntimeWarning")  # no fallback to eager
+@pytest.mark.parametrize("horizon", [N_BRK, N_BRK - 1])
+def test_a_horizon_no_longer_than_the_brake_warms_up_the_one_step_tail(checker, horizon):
+    """``horizon <= n_brk`` leaves no plan before the tail (``plan_steps <= 0``): the warm-up compiles the tail after
+    a single action only (a plan of no step has no graph), and a plan of one action is checked as eagerly."""
+    reach = copy.deepcopy(checker.reach).compile_steps(backend="aot_eager")
+    short = PlanChecker(reach, checker.failsafe, horizon, stop_dims=(2, 3), stop_slack=0.3,
+                        action_low=checker.action_low, action_high=checker.action_high)
+    assert short.plan_steps == horizon - N_BRK and len(_compiled(short)) == 1
+    x0, plan, *_ = scene()
+    eager = PlanChecker(checker.reach, checker.failsafe, horizon, stop_dims=(2, 3), stop_slack=0.3,
+                        action_low=checker.action_low, action_high=checker.action_high)
+    for a, b in zip(short.rollout(x0, plan[:, :1] * 0.5), eager.rollout(x0, plan[:, :1] * 0.5)):
+        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.filterwarnings("error::RuntimeWarning")  # no fallback to eager
 def test_short_braking_tails_roll_out_compiled_and_their_chain_stays_eager(checker):
     """A tail of ``n_brk = 8`` steps: its rollout is one graph, compiled with the checker for the tails the layer
     checks (a whole plan's, braking from the state), so no control step compiles; its Jacobian chain is eager."""

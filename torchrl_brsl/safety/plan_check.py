@@ -345,7 +345,7 @@ class PlanChecker:
         global model's for the tails the layer checks (braking from the state, a plan of :attr:`plan_steps` steps;
         each length is a graph of its own)."""
         rest = self.action_low.new_zeros(1, self.reach.state_dim)
-        lengths = [1] if self.plan_dependent else sorted(n for n in {1, self.plan_steps} if n < self.horizon)
+        lengths = [1] if self.plan_dependent else sorted(n for n in {1, self.plan_steps} if 1 <= n < self.horizon)
         rollout = self.rollout_sets if self.plan_dependent else self.rollout
         with torch.no_grad():
             for length in lengths:
