@@ -8,7 +8,8 @@ extended with what a real flight controller measures or remembers, and the same 
 40 plans of ``n_plan + n_brk = 17`` steps (every other one a single action then the zero command) from
 reachable states, their true trajectories sampled in MuJoCo.
 
-Variants (appended after the velocity; they have no process noise of their own):
+Variants (appended after the velocity; they have no process noise of their own, except ``v - r``, which carries
+the velocity's):
   base       the task's state
   tilt       + the body z axis' world x and y components (the thrust direction; heading is held at 0)
   rates      + tilt and the body roll and pitch rates
@@ -83,9 +84,13 @@ def measured_task(variant: str) -> type:
     base = quadrotor_nav.RotorQuadrotorNav
     extra = EXTRA[variant]
 
+    generators = np.concatenate([base.noise_generators, np.zeros((extra, base.noise_generators.shape[1]))])
+    if variant == "error":  # v - r carries the velocity's noise: the same generators
+        generators[6:9] = base.noise_generators[3:6]
+
     class Measured(base):
         noise_center = np.zeros(6 + extra)
-        noise_generators = np.concatenate([base.noise_generators, np.zeros((extra, base.noise_generators.shape[1]))])
+        noise_generators = generators
 
         def _bind(self, physics) -> None:
             super()._bind(physics)
