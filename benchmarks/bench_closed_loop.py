@@ -108,7 +108,7 @@ def main() -> None:
     info = envs.safety_info(task, robot=args.robot)
     noise = Zonotope(info.noise_center.double(), info.noise_generators.double())
     print(f"{'servo':<10}{'model':<8}{'collisions':>12}{'speed':>8}{'vs none':>9}{'interv.':>9}{'failsafe':>9}"
-          f"{'hold':>7}{'no data':>9}{'radius':>8}{'ms/step':>9}")
+          f"{'hold':>7}{'no data':>9}{'radius':>9}{'ms/step':>9}")
     uncapped = UNCAPPED.get(task, {"max_acceleration": None})
     robot = {} if args.robot == "kinematic" else {"robot": args.robot}
     settings = (("capped", robot, info.n_brk), ("uncapped", {**uncapped, **robot}, args.n_brk or info.n_brk))
@@ -130,7 +130,7 @@ def main() -> None:
             row = run(task, options, reach, n_brk, args.episodes, args.episode_steps, args.adjuster)
             print(f"{servo:<10}{method:<8}{row['collisions']:>6}/{row['episodes']:<5}{row['speed']:>8.3f}"
                   f"{row['speed'] / free['speed']:>9.2f}{row['intervened']:>9.2f}{row['failsafe']:>9.2f}"
-                  f"{row['hold']:>7.2f}{row['out_of_data']:>9.2f}{row['radius']:>8.3f}{row['ms']:>9.1f}", flush=True)
+                  f"{row['hold']:>7.2f}{row['out_of_data']:>9.2f}{row['radius']:>9.3g}{row['ms']:>9.1f}", flush=True)
 
 
 if __name__ == "__main__":
