@@ -34,7 +34,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
 import envs  # noqa: E402
-from bench_layer import N_PLAN, TASK, episode_times, stats  # noqa: E402
+from bench_layer import N_PLAN, TASK, episode_times, stats, step_shares  # noqa: E402
 from torchrl_brsl.reach import BodyFrame, DataDrivenReach, collect_offline_data  # noqa: E402
 from torchrl_brsl.safety import BRSLSafetyLayer, FacetQPAdjuster, Failsafe, GradientAdjuster, PlanChecker  # noqa: E402
 from torchrl_brsl.safety.adjust import _feedback_jacobian  # noqa: E402
@@ -97,9 +97,8 @@ def main() -> None:
 def adjusted_and_failsafe(flags: dict[str, list[bool]], first: int) -> str:
     """``"adjusted / failsafe"``: per cent of the steps from ``first`` on that the layer adjusted and verified, and
     that fell back to the failsafe."""
-    intervened, failsafe = flags["intervened"][first:], flags["failsafe"][first:]
-    verified = sum(i and not f for i, f in zip(intervened, failsafe))
-    return f"{100 * verified / len(failsafe):.0f} / {100 * sum(failsafe) / len(failsafe):.0f}"
+    share = step_shares(flags, first)
+    return f"{share['verified']:.0f} / {share['failsafe']:.0f}"
 
 
 def best_of_blocks(function, calls: int = 100, blocks: int = 7) -> float:

@@ -77,12 +77,17 @@ def episode_times(layer, steps: int, towards_wall: bool, seed: int,
     return times
 
 
-def shares(flags: dict[str, list[bool]], first: int) -> str:
-    """Per cent of the steps from ``first`` on: adjusted and verified, then each of :data:`FLAGS`."""
+def step_shares(flags: dict[str, list[bool]], first: int) -> dict[str, float]:
+    """Per cent of the steps from ``first`` on: ``verified`` (adjusted and verified), then each of :data:`FLAGS`."""
     def share(values):
         return 100 * sum(values[first:]) / max(len(values[first:]), 1)
     verified = [i and not f for i, f in zip(flags["intervened"], flags["failsafe"])]
-    return "".join(f"{share(values):>9.0f}" for values in (verified, *(flags[name] for name in FLAGS)))
+    return {"verified": share(verified), **{name: share(flags[name]) for name in FLAGS}}
+
+
+def shares(flags: dict[str, list[bool]], first: int) -> str:
+    """:func:`step_shares` as one row of columns."""
+    return "".join(f"{value:>9.0f}" for value in step_shares(flags, first).values())
 
 
 def stats(times: list[float]) -> tuple[float, float]:
