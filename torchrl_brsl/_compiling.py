@@ -3,19 +3,33 @@ tensors, and a warning when compiling fails."""
 from __future__ import annotations
 
 import functools
+import itertools
 import types
 import warnings
 from typing import Callable
 
 
+_COPIES = itertools.count(1)
+
+
 def own_code(function: Callable) -> types.FunctionType:
-    """A copy of ``function`` with a code object of its own.
+    """A copy of ``function`` with a code object of its own, named ``<name>_<n>`` (``n`` counts the copies).
 
     :func:`torch.compile` keys its graphs (and its limit on recompilations) by code object, so a
-    copy per owner and use keeps that owner's graphs apart from every other's.
+    copy per owner and use keeps that owner's graphs apart from every other's. Its automatic dynamic
+    shapes are keyed by the code's file, line and name instead: with the name shared, a second model's
+    tensors of other sizes made every later model's graphs symbolic in them, and its plan 3x slower
+    (``benchmarks/bench_compiled_step.py --models``).
+
+    Examples:
+        >>> def f(x):
+        ...     return x
+        >>> own_code(f).__code__.co_name != own_code(f).__code__.co_name
+        True
     """
-    return types.FunctionType(function.__code__.replace(), function.__globals__, function.__name__,
-                              function.__defaults__, function.__closure__)
+    code = function.__code__.replace(co_name=f"{function.__code__.co_name}_{next(_COPIES)}")
+    return types.FunctionType(code, function.__globals__, function.__name__, function.__defaults__,
+                              function.__closure__)
 
 
 def warn_fallback(what: str, error: Exception, instead: str = "eagerly") -> None:
