@@ -18,8 +18,8 @@ def own_code(function: Callable) -> types.FunctionType:
     :func:`torch.compile` keys its graphs (and its limit on recompilations) by code object, so a
     copy per owner and use keeps that owner's graphs apart from every other's. Its automatic dynamic
     shapes are keyed by the code's file, line and name instead: with the name shared, a second model's
-    tensors of other sizes made every later model's graphs symbolic in them, and its plan 3x slower
-    (``benchmarks/bench_compiled_step.py --models``).
+    tensors of other sizes made every later model's graphs symbolic in them: its plan ran 3x slower at
+    batch 1 and 8x at batch 16 (``benchmarks/bench_compiled_step.py`` compiles several models in one process).
 
     Examples:
         >>> def f(x):
