@@ -23,6 +23,7 @@ import torch
 from torchrl.envs import SerialEnv, TransformedEnv
 
 import envs
+from torchrl_brsl._malloc import malloc_name
 from torchrl_brsl.reach import BodyFrame, DataDrivenReach, collect_offline_data
 from torchrl_brsl.safety import ADJUSTERS, BRSLSafetyLayer, Failsafe
 from torchrl_brsl.sets import Zonotope
@@ -107,6 +108,7 @@ def main() -> None:
     task = args.task
     info = envs.safety_info(task, robot=args.robot)
     noise = Zonotope(info.noise_center.double(), info.noise_generators.double())
+    print(f"{task} ({args.robot} robot), one CPU thread, {malloc_name()}")
     print(f"{'servo':<10}{'model':<8}{'collisions':>12}{'speed':>8}{'vs none':>9}{'interv.':>9}{'failsafe':>9}"
           f"{'hold':>7}{'no data':>9}{'radius':>9}{'ms/step':>9}")
     uncapped = UNCAPPED.get(task, {"max_acceleration": None})

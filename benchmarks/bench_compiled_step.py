@@ -24,6 +24,7 @@ import time
 import torch
 
 from torchrl_brsl._compiling import vector_options
+from torchrl_brsl._malloc import malloc_name
 from torchrl_brsl.reach import (CappedVelocityServo, DataDrivenReach, DoubleIntegrator, KinematicBicycle,
                                 SaturatedThrustPoint, Unicycle)
 from torchrl_brsl.sets import Zonotope
@@ -112,7 +113,8 @@ def main() -> None:
     batches, repeats = ((1, 16), 5) if args.quick else ((1, 4, 16, 64), 20)
     if args.vectors:
         return main_vectors(batches, repeats)
-    print(f"one plan's sets (T = {HORIZON}), one CPU thread, no gradients, median ms per plan; the three alternated")
+    print(f"one plan's sets (T = {HORIZON}), one CPU thread, {malloc_name()}, no gradients, median ms per plan; "
+          "the three alternated")
     print(f"{'system':<20}{'batch':>6}{'eager':>9}{'steps':>9}{'loop':>9}{'eager/loop':>12}{'steps/loop':>12}"
           f"{'compile s':>11}{'|Δ centre|':>12}{'radius ratio':>18}")
     for name, system_type in SYSTEMS.items():

@@ -27,6 +27,7 @@ import torch
 from torchrl.envs import TransformedEnv
 
 import envs
+from torchrl_brsl._malloc import malloc_name
 from torchrl_brsl.reach import BodyFrame, DataDrivenReach, collect_offline_data
 from torchrl_brsl.safety import BRSLSafetyLayer, FacetQPAdjuster, Failsafe, GradientAdjuster
 from torchrl_brsl.sets import Zonotope
@@ -148,7 +149,7 @@ def main() -> None:
             actor_times.append(time.perf_counter() - start)
     rows["one actor forward (MLP 23-256-256-2)"] = stats(actor_times)
 
-    print(f"{TASK}: {N_OBSTACLES} obstacles, n_plan = {N_PLAN}, n_brk = {info.n_brk}, one CPU thread, "
+    print(f"{TASK}: {N_OBSTACLES} obstacles, n_plan = {N_PLAN}, n_brk = {info.n_brk}, one CPU thread, {malloc_name()}, "
           f"{args.data} offline steps; % of the timed steps")
     print(f"{'':<66}{'median ms':>12}{'p99 ms':>10}{'adjusted':>9}{'failsafe':>9}{'hold':>9}{'no data':>9}")
     for label, (median, p99) in rows.items():

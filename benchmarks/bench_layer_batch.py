@@ -29,6 +29,7 @@ import torch
 from tensordict import TensorDict
 
 import envs
+from torchrl_brsl._malloc import malloc_name
 from torchrl_brsl.reach import BodyFrame, DataDrivenReach, collect_offline_data
 from torchrl_brsl.safety import BRSLSafetyLayer, Failsafe
 from torchrl_brsl.sets import Zonotope
@@ -93,7 +94,7 @@ def main() -> None:
     noise = Zonotope(info.noise_center.double(), info.noise_generators.double())
     data = collect_offline_data(envs.make(TASK, empty=True, seed=1), 2000)
     calls = 3 if args.quick else 10
-    print(f"{TASK}, n_plan = {N_PLAN}, n_brk = {info.n_brk}, one CPU thread, device {device}")
+    print(f"{TASK}, n_plan = {N_PLAN}, n_brk = {info.n_brk}, one CPU thread, {malloc_name()}, device {device}")
     print(f"{'model / regime':<38}" + "".join(f"{f'B={b} ms':>12}" for b in BATCHES)
           + f"{'64 / 1':>9}{'ms per env at 64':>18}{'failsafe':>10}")
     for model in args.models.split(","):

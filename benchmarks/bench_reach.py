@@ -18,6 +18,7 @@ import argparse
 import torch
 from bench_collision import median_ms
 
+from torchrl_brsl._malloc import malloc_name
 from torchrl_brsl.reach import DataDrivenReach, DoubleIntegrator, Unicycle
 from torchrl_brsl.sets import Zonotope
 
@@ -53,7 +54,7 @@ def main() -> None:
     systems = {"double integrator (n=4)": DoubleIntegrator(), "unicycle (n=4)": Unicycle()}
     results = {name: run(system, args.quick) for name, system in systems.items()}
     names = list(results)
-    print(f"reachable sets of one plan (n_plan = {N_PLAN}), one CPU thread, median ms per call")
+    print(f"reachable sets of one plan (n_plan = {N_PLAN}), one CPU thread, {malloc_name()}, median ms per call")
     print(f"{'method':<44}" + "".join(f"{n:>26}" for n in names))
     for label, key in (("(a) fitted form, full sets", "sets"), ("(b) fitted form, centres only (hot path)", "centers"),
                        ("(c) literal per-step pinv (paper)", "literal")):

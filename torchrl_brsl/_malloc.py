@@ -1,0 +1,36 @@
+"""Which ``malloc`` serves this process: the compiled plan loops' speed depends on it.
+
+Inductor's C++ code allocates every intermediate tensor of every step of a plan's loop (about a hundred
+small buffers a step) through ``posix_memalign``, which glibc serves outside its per-thread cache: on the
+bicycle's compiled plan at batch 1, a quarter of the loop's time was spent in glibc's ``malloc`` and ``free``
+(``perf``). A caching allocator preloaded into the process (``LD_PRELOAD``; tcmalloc, jemalloc) removes most of
+it; ``docs/install.md`` has the figures. Benchmarks print :func:`malloc_name` so that their timings say which
+allocator they ran on.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+ALLOCATORS = {"libtcmalloc": "tcmalloc", "libjemalloc": "jemalloc", "libmimalloc": "mimalloc"}
+"""Library name prefixes of the caching allocators recognised, and their names."""
+
+
+def malloc_name(maps: str | Path = "/proc/self/maps") -> str:
+    """The caching allocator mapped into this process, ``"system malloc"`` if none, ``"unknown"`` without ``maps``.
+
+    Args:
+        maps: the process's memory map (Linux ``/proc/self/maps``), each line ending in the mapped file's path.
+
+    Examples:
+        >>> malloc_name() in {*ALLOCATORS.values(), "system malloc", "unknown"}
+        True
+    """
+    try:
+        lines = Path(maps).read_text().splitlines()
+    except OSError:  # not Linux, or no procfs
+        return "unknown"
+    names = {Path(line.split()[-1]).name for line in lines if "/" in line}
+    for prefix, name in ALLOCATORS.items():
+        if any(file.startswith(prefix) for file in names):
+            return name
+    return "system malloc"
