@@ -348,9 +348,9 @@ class DataDrivenReach(nn.Module):
             A :class:`Zonotope` of batch ``[..., H]``, differentiable w.r.t. ``actions`` and the
             initial centre and generators.
         """
-        actions = self._check_reach_args(initial, actions)
-        if self.plan_dependent:
+        if self.plan_dependent:  # which checks the arguments
             return self.reach_covered(initial, actions)[0]
+        actions = self._check_reach_args(initial, actions)
         horizon = actions.shape[-2]
         centers = self.reach_centers(initial.center, actions)
         batch = centers.shape[:-1]
