@@ -52,6 +52,7 @@ bench: $(STAMP)
 	$(RUN) benchmarks/bench_core.py
 	$(RUN) benchmarks/bench_layer.py
 	$(RUN) benchmarks/bench_envs.py
+	$(PY) benchmarks/bench_malloc.py
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache docs/_build docs/auto_tutorials docs/sg_execution_times.rst

@@ -9,10 +9,15 @@ allocator they ran on.
 """
 from __future__ import annotations
 
+import shutil
+import subprocess
 from pathlib import Path
 
 ALLOCATORS = {"libtcmalloc": "tcmalloc", "libjemalloc": "jemalloc", "libmimalloc": "mimalloc"}
 """Library name prefixes of the caching allocators recognised, and their names."""
+
+LIBRARIES = {"tcmalloc": "libtcmalloc_minimal.so.4", "jemalloc": "libjemalloc.so.2", "mimalloc": "libmimalloc.so.2"}
+"""The shared library to preload for each allocator (the names Debian's packages install)."""
 
 
 def malloc_name(maps: str | Path = "/proc/self/maps") -> str:
@@ -34,3 +39,24 @@ def malloc_name(maps: str | Path = "/proc/self/maps") -> str:
         if any(file.startswith(prefix) for file in names):
             return name
     return "system malloc"
+
+
+def installed_allocators() -> dict[str, str]:
+    """``{name: path}`` of the caching allocators the dynamic linker knows (``ldconfig -p``), for ``LD_PRELOAD``.
+
+    Examples:
+        >>> set(installed_allocators()) <= set(LIBRARIES)
+        True
+    """
+    ldconfig = shutil.which("ldconfig") or "/sbin/ldconfig"
+    try:
+        listing = subprocess.run([ldconfig, "-p"], capture_output=True, text=True, check=True).stdout
+    except (OSError, subprocess.CalledProcessError):  # no ldconfig (not glibc Linux)
+        return {}
+    found = {}
+    for line in listing.splitlines():
+        library, _, path = line.strip().partition(" => ")
+        for name, wanted in LIBRARIES.items():
+            if library.split()[0:1] == [wanted] and name not in found:
+                found[name] = path.strip()
+    return found
