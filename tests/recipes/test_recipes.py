@@ -6,6 +6,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from recipes import safety_models
 from recipes.compare import compare
 from recipes.evaluate import evaluate_run, main as evaluate_main
 from recipes.runs import load_run, read_scalar
@@ -173,6 +174,15 @@ def test_the_reach_steps_are_compiled_for_long_runs_only_by_default():
     assert compiles_reach(compose_config(["task=diffdrive_nav", "total_frames=100", "method.compile_reach=true"]))
     with pytest.raises(ValueError, match="method.compile_reach"):
         compiles_reach(compose_config(["task=diffdrive_nav", "method.compile_reach=sometimes"]))
+
+
+
+@pytest.mark.parametrize("found, advice", [({"tcmalloc": "/lib/libtcmalloc_minimal.so.4"},
+                                            "LD_PRELOAD=/lib/libtcmalloc_minimal.so.4"),
+                                           ({}, "apt install libtcmalloc-minimal4")])
+def test_a_compiled_layer_on_the_system_malloc_is_told_how_to_preload_a_caching_one(monkeypatch, found, advice):
+    monkeypatch.setattr(safety_models, "installed_allocators", lambda: found)
+    assert advice in safety_models.allocator_hint()
 
 
 #: the overrides of the task's SafetyInfo that the default task configs document: (n_plan, n_brk)
