@@ -2,6 +2,7 @@
 and the layer itself."""
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 from typing import Callable, NamedTuple
 
@@ -98,8 +99,7 @@ def make_layer(cfg: DictConfig, models: SafetyModels) -> BRSLSafetyLayer:
         for model in models:
             if model is not None:
                 model.compile_steps()
-        if malloc_name() == "system malloc":
-            print(allocator_hint())
+        _say_allocator_hint()
     adjuster = None if cfg.method.adjuster == "none" else cfg.method.adjuster  # the layer's registry checks the name
     return BRSLSafetyLayer(
         models.reach, Failsafe(settings.braking_action, settings.n_brk, policy=settings.braking_policy),
@@ -114,6 +114,13 @@ def allocator_hint() -> str:
     how = (f"run with LD_PRELOAD={next(iter(found.values()))}" if found
            else "install one (Debian: apt install libtcmalloc-minimal4) and preload it")
     return f"note: the compiled layer runs 1.2-1.4x faster with a caching malloc; {how} (docs/install.md)"
+
+
+@functools.cache
+def _say_allocator_hint() -> None:
+    """Print :func:`allocator_hint` once per process, on the system malloc."""
+    if malloc_name() == "system malloc":
+        print(allocator_hint())
 
 
 COMPILE_FROM_FRAMES = 5_000
