@@ -481,3 +481,13 @@ def test_skip_value_checks_only_skips_the_nan_scan():
             Zonotope(torch.zeros(2), torch.zeros(3, 2))
     with pytest.raises(ValueError, match="center"):
         Zonotope(torch.tensor([float("nan"), 0.0]), torch.eye(2))
+
+
+@pytest.mark.parametrize("shapes", [((3, 1), (3, 1), (3, 1)), ((2, 1), (3,)), ((), (4,)), ((1,), ()),
+                                    ((5, 1, 2), (1, 3, 1))])
+def test_the_fast_broadcast_agrees_with_torch(shapes):
+    from torchrl_brsl.sets._checks import broadcast_shapes
+
+    assert broadcast_shapes(*map(torch.Size, shapes)) == torch.broadcast_shapes(*shapes)
+    with pytest.raises(RuntimeError):
+        broadcast_shapes(torch.Size([2]), torch.Size([3]))

@@ -14,7 +14,7 @@ from torchrl_brsl.reach.cells import Cells, fit_cells, held_out_factors
 from torchrl_brsl.reach.lipschitz import covering_radius, residual_lipschitz
 from torchrl_brsl.reach.local_step import LocalStep
 from torchrl_brsl.sets import Zonotope, pad_generators, reduce_girard
-from torchrl_brsl.sets._checks import check_tensor, skip_value_checks
+from torchrl_brsl.sets._checks import broadcast_shapes, check_tensor, skip_value_checks
 
 METHODS = ("local", "global")
 
@@ -407,7 +407,7 @@ class DataDrivenReach(nn.Module):
             return sets, torch.ones(sets.batch_size[:-1], dtype=torch.bool, device=sets.center.device)
         dtype = self.state_matrix.dtype
         actions = actions.to(dtype)
-        batch = torch.broadcast_shapes(initial.batch_size, actions.shape[:-2])
+        batch = broadcast_shapes(initial.batch_size, actions.shape[:-2])
         center = initial.center.to(dtype).expand(*batch, self.state_dim)
         generators = initial.generators.to(dtype).expand(*batch, *initial.generators.shape[-2:])
         return self._local_step().plan_sets(center, generators, actions, tangents, brake)

@@ -28,7 +28,7 @@ from torchrl_brsl._compiling import inductor_kwargs, own_code, warn_fallback
 from torchrl_brsl.reach.cells import NEAR_LEAVES, leaf_bounds, leaf_distance, leaf_gaps, leaf_layout
 from torchrl_brsl.reach.hinges import product_relaxation, relu_relaxation
 from torchrl_brsl.sets import Zonotope, pad_generators, reduce_girard
-from torchrl_brsl.sets._checks import skip_value_checks
+from torchrl_brsl.sets._checks import broadcast_shapes, skip_value_checks
 from torchrl_brsl.sets.reduction import girard_columns
 
 
@@ -177,7 +177,7 @@ class LocalStep:
         """
         if brake is not None and tangents is not None and len(brake) < 3:
             raise ValueError("`brake` with `tangents` needs the policy's tangent map: (policy, steps, policy_tangent)")
-        batch = torch.broadcast_shapes(center.shape[:-1], generators.shape[:-2], actions.shape[:-2])
+        batch = broadcast_shapes(center.shape[:-1], generators.shape[:-2], actions.shape[:-2])
         inputs = (center, generators, actions, *(tangents or ()))
         differentiable = torch.is_grad_enabled() and any(t.requires_grad for t in inputs)
         loop = self._compiled_loop[tangents is not None] if self._compiled_loop is not None else None

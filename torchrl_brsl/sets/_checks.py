@@ -57,6 +57,20 @@ def check_same_dtype_device(**tensors: Tensor) -> None:
             raise ValueError(f"`{name}` is on {tensor.device} but `{first_name}` is on {first.device}")
 
 
+def broadcast_shapes(*shapes) -> torch.Size:
+    """:func:`torch.broadcast_shapes`, without its cost (about 20 µs) where the shapes are equal already (the
+    usual case on a control loop's hot path).
+
+    Examples:
+        >>> broadcast_shapes(torch.Size([3]), (3,)), broadcast_shapes((2, 1), (3,))
+        (torch.Size([3]), torch.Size([2, 3]))
+    """
+    first = torch.Size(shapes[0])
+    if all(first == tuple(shape) for shape in shapes[1:]):
+        return first
+    return torch.broadcast_shapes(*shapes)
+
+
 def broadcast_batch(name: str, shape, batch) -> torch.Size:
     """Broadcast the batch shape of argument ``name`` with a set's ``batch``, or raise ``ValueError``."""
     try:
