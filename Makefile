@@ -10,9 +10,9 @@ export OMP_NUM_THREADS ?= 1
 # tcmalloc, where installed (Debian: libtcmalloc-minimal4), serves the runs of `make demo` and `make bench`: the
 # compiled plan loops allocate many small tensors, which it makes 1.2-1.4x faster (docs/install.md).
 # `make bench MALLOC=` runs on the system's malloc.
-LIBRARIES := $(shell (ldconfig -p || /sbin/ldconfig -p) 2>/dev/null)
-MALLOC ?= $(firstword $(filter %/libtcmalloc_minimal.so.4,$(LIBRARIES)))
-RUN := $(if $(MALLOC),LD_PRELOAD=$(MALLOC) )$(PY)
+# (expanded when a recipe runs, once the package is installed: torchrl_brsl._malloc finds it)
+MALLOC ?= $(shell $(PY) -c "from torchrl_brsl._malloc import installed_allocators as a; print(a().get('tcmalloc', ''))")
+RUN = $(if $(MALLOC),LD_PRELOAD=$(MALLOC) )$(PY)
 
 .PHONY: demo demo-reach test docs bench install clean
 

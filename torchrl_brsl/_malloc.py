@@ -53,10 +53,9 @@ def installed_allocators() -> dict[str, str]:
         listing = subprocess.run([ldconfig, "-p"], capture_output=True, text=True, check=True).stdout
     except (OSError, subprocess.CalledProcessError):  # no ldconfig (not glibc Linux)
         return {}
-    found = {}
+    listed = {}  # library file name -> path, the first listing of each
     for line in listing.splitlines():
-        library, _, path = line.strip().partition(" => ")
-        for name, wanted in LIBRARIES.items():
-            if library.split()[0:1] == [wanted] and name not in found:
-                found[name] = path.strip()
-    return found
+        library, arrow, path = line.strip().partition(" => ")
+        if arrow:
+            listed.setdefault(library.split()[0], path.strip())
+    return {name: listed[file] for name, file in LIBRARIES.items() if file in listed}
