@@ -63,7 +63,10 @@ class SafetyDecision:
         failsafe: the braking manoeuvre.
         adjuster: called as ``adjuster(checker, x0, plan, obstacles, start=, reference=)`` on the
             envs whose proposal fails (see :mod:`~torchrl_brsl.safety.adjust`); ``None``: never adjust.
-            Its ``prepare(checker)``, if it has one, is called here for each checker (e.g. to compile).
+            Its ``prepare(checker)``, if it has one, is called here for each checker (e.g. to compile). Its
+            ``evaluate_paired(checker, x0, plan, reference, obstacles)``, if it has one, checks the proposals where
+            the last step adjusted every env, and what it returns beside the evaluation reaches the adjuster as
+            ``reference_rollout`` (:meth:`~torchrl_brsl.safety.FacetQPAdjuster.evaluate_paired`).
         local_checker: verifies plans with a restricted-domain model (its action bounds the
             local domain's), or ``None``.
 
@@ -81,6 +84,7 @@ class SafetyDecision:
             for each in filter(None, (checker, local_checker)):
                 adjuster.prepare(each)
         self.horizon = checker.horizon
+        self._pair = False  # evaluate the proposals and the adjuster's references in one batch (:meth:`_adjust`)
         # a proposal counts as out of bounds beyond rounding (the bounds may be float32)
         self.bound_tolerance = 1e-6 * (checker.action_high - checker.action_low).clamp_min(1.0)
 
@@ -105,10 +109,14 @@ class SafetyDecision:
         outside = ((plan < low - self.bound_tolerance) | (plan > high + self.bound_tolerance)).flatten(1).any(-1)
         plan = torch.clamp(plan, low, high)
         with torch.no_grad():
-            evaluation = self.checker.evaluate(x0, plan, obstacles)
+            if self._pair and hasattr(self.adjuster, "evaluate_paired"):
+                evaluation, reference_rollout = self.adjuster.evaluate_paired(self.checker, x0, plan, safe_plan,
+                                                                              obstacles)
+            else:
+                evaluation, reference_rollout = self.checker.evaluate(x0, plan, obstacles), None
         proposal_safe = _and_valid(evaluation.safe, valid)
         plans = _Plans(proposal_safe, evaluation.actions, evaluation.values)
-        plans, iterations = self._adjust(plans, x0, plan, safe_plan, obstacles, valid, start)
+        plans, iterations = self._adjust(plans, x0, plan, safe_plan, obstacles, valid, start, reference_rollout)
         plans, local = self._retry_locally(plans, x0, plan, safe_plan, obstacles, valid, start)
         usable, actions, local = self._brake(plans, x0, obstacles, valid, local)
         executed, next_plan, next_steps, exhausted = self._execute(usable, actions, x0, safe_plan, safe_steps, valid)
@@ -128,15 +136,17 @@ class SafetyDecision:
         return StepDecision(executed, next_plan, next_steps, diagnostics)
 
     def _adjust(self, plans: _Plans, x0: Tensor, plan: Tensor, safe_plan: Tensor, obstacles: Obstacles,
-                valid: Tensor | None, start: float | None) -> tuple[_Plans, Tensor]:
+                valid: Tensor | None, start: float | None, reference_rollout: tuple | None) -> tuple[_Plans, Tensor]:
         """The adjuster on the envs whose proposal failed: their plans and iteration counts."""
         iterations = torch.zeros(x0.shape[0], dtype=torch.long, device=x0.device)
         todo = _and_valid(~plans.accepted, valid)
+        self._pair = bool(todo.all())  # adjustments come in runs: the next step likely adjusts too
         if self.adjuster is None or not bool(todo.any()):
             return plans, iterations
         idx, sub = _for_envs(self.checker, todo, obstacles)
+        paired = {} if reference_rollout is None else {"reference_rollout": [_take(t, idx) for t in reference_rollout]}
         adjusted = self.adjuster(sub, _take(x0, idx), _take(plan, idx), _take(obstacles, idx), start=start,
-                                 reference=_take(safe_plan, idx))
+                                 reference=_take(safe_plan, idx), **paired)
         found = adjusted.evaluation
         plans = _Plans(*(_put(old, idx, new) for old, new in zip(plans, (found.safe, found.actions, found.values))))
         return plans, _put(iterations, idx, adjusted.iterations)
@@ -255,7 +265,7 @@ def _for_envs(checker: PlanChecker, selected: Tensor, obstacles: Obstacles) -> t
 
 
 def _take(value, idx: Tensor | None):
-    """``value[idx]`` (a tensor or :class:`Obstacles`), or ``value`` itself for every env."""
+    """``value[idx]`` (a tensor, :class:`Obstacles` or :class:`Zonotope`), or ``value`` itself for every env."""
     return value if idx is None else value[idx]
 
 
