@@ -158,6 +158,31 @@ def test_failsafe_validates_its_arguments():
     assert torch.equal(brake.actions(torch.zeros(4, 6)), torch.tensor([[0.5, -0.5]] * 4))
 
 
+def test_facet_qp_checks_its_halvings_in_one_batch_once_few_adjustments_take_the_full_or_half_step(
+        local_reach, system, monkeypatch):
+    """The facet QP checks the full and the half step first while most adjustments take one of them, and every
+    halving in one batch once a running share of fewer than ``EARLY_SHARE`` did (the verdicts are the same)."""
+    from torchrl_brsl.safety import adjust
+
+    checker = make_checker(local_reach, system, stop_tolerance=None, stop_slack=0.1)
+    x0 = torch.tensor([[0.0, 0.0, 0.3, 0.0]], dtype=torch.float64)
+    c, g, mask, _ = box([0.35, -1.0], [0.6, 1.0])
+    obstacles = obstacles_of(c, g, mask)
+    plan, reference = torch.ones(1, N_PLAN, 2, dtype=torch.float64), torch.zeros(1, N_PLAN, 2, dtype=torch.float64)
+    batches, first_safe = [], adjust._first_safe
+
+    def deep(*args, first_batch=None):  # as if every adjustment had needed the last halving
+        batches.append(first_batch)
+        found = first_safe(*args, first_batch=first_batch)
+        return found._replace(iterations=torch.full_like(found.iterations, 5))
+
+    monkeypatch.setattr(adjust, "_first_safe", deep)
+    adjuster = FacetQPAdjuster()
+    for _ in range(4):
+        adjuster(checker, x0, plan, obstacles, reference=reference)
+    assert batches == [2, 2, 2, 5]  # the running share: 1, 0.8, 0.64, 0.512 < EARLY_SHARE
+
+
 def test_local_model_of_a_restricted_domain_claims_nothing_outside_it(system):
     """A local (cell) model fitted on low speeds: plans that speed up past the domain are unverified."""
     x, xp, u = system.offline_data(2000, torch.Generator().manual_seed(0))
@@ -195,9 +220,11 @@ def test_flat_plan_dependent_sets_against_empty_obstacle_slots_never_raise(syste
     assert torch.isinf(evaluation.values[..., 1]).all()
 
 
-def test_batched_backtracking_takes_the_first_safe_halving(local_reach, system):
-    """A local model's candidates ``reference + step / 2^a`` are checked in one batch; each env takes
-    the first safe one, as checking them in turn would (the reference's evaluation when none is)."""
+@pytest.mark.parametrize("first_batch", [None, 2, 1])
+def test_batched_backtracking_takes_the_first_safe_halving(local_reach, system, first_batch):
+    """A local model's candidates ``reference + step / 2^a`` are checked in one batch, or the first ``first_batch``
+    and then the rest for the envs where none was safe; each env takes the first safe one, as checking them in
+    turn would (the reference's evaluation when none is)."""
     checker = make_checker(local_reach, system, stop_tolerance=None, stop_slack=0.1)
     gen = torch.Generator().manual_seed(5)
     n_envs = 12
@@ -209,7 +236,7 @@ def test_batched_backtracking_takes_the_first_safe_halving(local_reach, system):
     c, g, mask, _ = box([0.35, -1.0], [0.6, 1.0])
     obstacles = obstacles_of(c.expand(n_envs, 1, 2), g.expand(n_envs, 1, 2, 2), mask.expand(n_envs, 1))
     ref_eval = checker.evaluate(x0, reference, obstacles)
-    result = _first_safe(checker, x0, reference, step, obstacles, ref_eval, backtracking=4)
+    result = _first_safe(checker, x0, reference, step, obstacles, ref_eval, backtracking=4, first_batch=first_batch)
     firsts = []
     for i in range(n_envs):
         safe = [bool(checker.evaluate(x0[i:i + 1], reference[i:i + 1] + step[i:i + 1] / 2 ** a,

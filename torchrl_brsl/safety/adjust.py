@@ -240,6 +240,7 @@ class FacetQPAdjuster:
         self.polish = int(polish)
         self.target_margin = float(target_margin)
         self.backtracking = int(backtracking)
+        self._early = 1.0  # running share of adjustments whose full or half step was safe (:data:`EARLY_SHARE`)
 
     def prepare(self, checker: PlanChecker) -> None:
         """Compile what this adjuster runs on ``checker`` now, not at its first control step
@@ -336,8 +337,13 @@ class FacetQPAdjuster:
         rounding = 1e-9 * (A.abs() @ step.abs().unsqueeze(-1)).squeeze(-1)
         scale = torch.where(excess > b + rounding, b / excess.clamp_min(1e-12), 1.0).amin(-1).clamp(0, 1)
         step = (step * scale.unsqueeze(-1)).view_as(reference)
-        if checker.plan_dependent:  # a check costs a rollout of sets: every halving in one batch
-            return _first_safe(checker, x0, reference, step, obstacles, ref_eval, self.backtracking)
+        if checker.plan_dependent:  # a check costs a rollout of sets: the halvings in one or two batches
+            first = FIRST_HALVINGS if self._early >= EARLY_SHARE else self.backtracking + 1
+            adjustment = _first_safe(checker, x0, reference, step, obstacles, ref_eval, self.backtracking,
+                                     first_batch=first)
+            early = float((adjustment.iterations <= FIRST_HALVINGS).double().mean())
+            self._early = 0.8 * self._early + 0.2 * early
+            return adjustment
         best_plan, best_eval = reference, ref_eval
         accepted = torch.zeros(n_envs, dtype=torch.bool, device=plan.device)
         tries = torch.zeros(n_envs, dtype=torch.long, device=plan.device)
@@ -369,25 +375,33 @@ class FacetQPAdjuster:
 
 
 FIRST_HALVINGS = 2
-"""Candidates of :func:`_first_safe` checked in its first batch. The compiled plan loop pads a batch of one plan to
-two, so the first halving rides along with the full step at no cost; the rest are checked only for the envs that
-need them (on ``bench_layer.py``'s wall scene, 14 of 85 adjusting steps did). One batch of all five took 2.7 ms
-there, a batch of two 1.8 ms."""
+"""Candidates of :func:`_first_safe` checked in its first batch when most adjustments take one of them."""
+
+EARLY_SHARE = 0.6
+"""The facet QP checks its full and half step first, and the other halvings only for the envs where both fail,
+while a running share (weight 0.2 per call) of at least this many adjustments took one of those two; else all in
+one batch. A batch of one plan is padded to two in the compiled loop, so at one env the half step rides along with
+the full one (1.8 ms on the Turtlebot's 16-step plans, against 2.7 for all five and 2.2 for the last three): the
+first batch alone pays off from a share of about 0.6. On ``bench_layer.py``'s wall scene 71 of 85 adjustments took
+one of the two (11.0-11.4 -> 8.8-9.7 ms a step, with :meth:`FacetQPAdjuster.evaluate_paired`); on
+``bench_layer_batch.py``'s walls fewer do, and two batches took 6.7-6.9 against 6.2-7.2 ms at one env and
+17.5-18.1 against 14.6-15.9 at four (three runs each, alternated in one process)."""
 
 
 def _first_safe(checker: PlanChecker, x0: Tensor, reference: Tensor, step: Tensor, obstacles: Obstacles,
-                ref_eval: PlanEvaluation, backtracking: int) -> Adjustment:
-    """The first safe of ``reference + step / 2^a``, ``a = 0 .. backtracking``, per env: the first
-    :data:`FIRST_HALVINGS` in one batch, the others in a second batch for the envs that found none.
+                ref_eval: PlanEvaluation, backtracking: int, first_batch: int | None = None) -> Adjustment:
+    """The first safe of ``reference + step / 2^a``, ``a = 0 .. backtracking``, per env: the first ``first_batch``
+    (``None``: all) in one batch, the others in a second batch for the envs that found none.
 
     The same choice as checking them in turn (the reference's evaluation where none is safe);
     ``iterations`` counts the candidates up to the one taken.
     """
     n_envs, attempts = reference.shape[0], backtracking + 1
-    first = torch.full((n_envs,), attempts, dtype=torch.long, device=step.device)  # attempts: none safe
+    taken_at = torch.full((n_envs,), attempts, dtype=torch.long, device=step.device)  # attempts: none safe
     plan, chosen = reference, ref_eval
     todo = torch.arange(n_envs, device=step.device)
-    for tried in (range(min(FIRST_HALVINGS, attempts)), range(FIRST_HALVINGS, attempts)):
+    split = attempts if first_batch is None else min(first_batch, attempts)
+    for tried in (range(split), range(split, attempts)):
         if not len(tried) or not len(todo):
             continue
         count, size = len(tried), len(todo)
@@ -398,11 +412,11 @@ def _first_safe(checker: PlanChecker, x0: Tensor, reference: Tensor, step: Tenso
         safe = evaluation.safe.view(count, size)
         found, taken = safe.any(0), safe.to(torch.uint8).argmax(0)  # [b]: the first safe candidate's row
         envs, pick = todo[found], (taken * size + torch.arange(size, device=step.device))[found]
-        first[envs] = tried.start + taken[found]
+        taken_at[envs] = tried.start + taken[found]
         plan = plan.index_copy(0, envs, candidates[pick])
         chosen = PlanEvaluation(*(old.index_copy(0, envs, new[pick]) for new, old in zip(evaluation, chosen)))
         todo = todo[~found]
-    return Adjustment(plan, chosen, (first + 1).clamp_max(attempts))
+    return Adjustment(plan, chosen, (taken_at + 1).clamp_max(attempts))
 
 
 def _feedback_linearisable(checker: PlanChecker, x0: Tensor, plan: Tensor) -> bool:
