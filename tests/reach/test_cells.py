@@ -4,8 +4,8 @@ import math
 import pytest
 import torch
 
-from torchrl_brsl.reach import (DataDrivenReach, DoubleIntegrator, KinematicBicycle, SaturatedThrustPoint, hinges,
-                                leaf_distance, leaf_layout, point_bounds)
+from torchrl_brsl.reach import (CappedVelocityServo, DataDrivenReach, DoubleIntegrator, KinematicBicycle,
+                                SaturatedThrustPoint, cells, hinges, leaf_distance, leaf_layout, point_bounds)
 from torchrl_brsl.sets import Zonotope
 
 from reach_support import fit, random_plans, sampled, shared_fit
@@ -69,6 +69,59 @@ def test_held_out_check_warns_where_the_data_are_sparse_and_widens_those_leaves(
                       for seed in (1, 2, 3)] for name, reach in (("plain", plain), ("checked", checked))}
     assert all(c <= p for c, p in zip(outside["checked"], outside["plain"])), outside
     assert sum(outside["checked"]) < sum(outside["plain"]), outside
+
+
+def test_outputs_fitted_on_the_inputs_they_depend_on_are_tighter_and_sound(monkeypatch):
+    """A capped servo's velocity depends on its own axis' velocity and command (inputs ``(vx, vy, ux, uy)``):
+    :func:`select_inputs` finds them, and an output whose cells on them alone win weighs the other inputs 0.
+    Measured, 500 steps: 2.65 times the sampled spread against 2.89 with every output on all inputs, 0 outside."""
+    system = CappedVelocityServo()
+    x, xp, u = system.offline_data(500, torch.Generator().manual_seed(0))
+    reach = fit(system, 500)
+    assert cells.select_inputs(reach._scaled_data, xp[:, 2] - x[:, 2]).tolist() == [True, False, True, False]
+    assert cells.select_inputs(reach._scaled_data, xp[:, 3] - x[:, 3]).tolist() == [False, True, False, True]
+    assert (reach.cell_weights == 0).any(), "some output should keep its own inputs only"
+    selected = sampled(system, reach)
+    monkeypatch.setattr(cells, "select_inputs", lambda inputs, target: torch.ones(inputs.shape[1], dtype=torch.bool))
+    every_input = sampled(system, fit(system, 500))
+    assert selected.violations == 0 and every_input.violations == 0
+    assert selected.median_ratio < every_input.median_ratio, (selected.median_ratio, every_input.median_ratio)
+
+
+def test_points_the_metric_cannot_tell_apart_but_whose_outputs_differ_get_no_bound():
+    """Two data points at distance 0 in an output's metric (it weighs the input they differ in 0) whose residuals
+    differ by more than the noise: no Lipschitz constant holds, and the leaf's error is infinite, never chosen."""
+    z = torch.tensor([[0.1, 0.2], [0.1, 0.9], [0.5, 0.5], [0.8, 0.1]], dtype=torch.float64)
+    residual = torch.tensor([0.0, 1.0, 0.3, 0.2], dtype=torch.float64)
+    noise, floor = torch.tensor(0.01, dtype=torch.float64), torch.tensor(0.0, dtype=torch.float64)
+    blind = cells._bound_cell(z, residual, noise, torch.tensor([1.0, 0.0], dtype=torch.float64), 1.5, floor)
+    seeing = cells._bound_cell(z, residual, noise, torch.tensor([1.0, 1.0], dtype=torch.float64), 1.5, floor)
+    assert math.isinf(blind[0]) and math.isinf(blind[2])
+    assert math.isfinite(seeing[0]) and math.isfinite(seeing[2])
+
+
+def test_the_curvature_floor_ignores_inputs_of_weight_zero_without_a_slope():
+    low = torch.tensor([[0.0, 0.0], [1.0, 0.0]], dtype=torch.float64)
+    high = torch.tensor([[1.0, 1.0], [2.0, 1.0]], dtype=torch.float64)
+    slopes = torch.tensor([[1.0, 0.0], [3.0, 0.0]], dtype=torch.float64)  # touching leaves; input 1 has no slope
+    both = cells.curvature_floor(low, high, slopes, torch.tensor([0.5, 0.0], dtype=torch.float64))
+    torch.testing.assert_close(both, torch.tensor([2.0, 2.0], dtype=torch.float64))  # |3 - 1| / (2 * 0.5)
+    slopes[1, 1] = 0.1  # a slope along an input the metric ignores: no constant bounds the residual
+    assert torch.isinf(cells.curvature_floor(low, high, slopes, torch.tensor([0.5, 0.0], dtype=torch.float64))).all()
+
+
+def test_leaves_span_the_data_range_along_the_inputs_they_do_not_split():
+    """Cells on some inputs still end where the data do (extended by ``extend``) along the others, so a set beyond
+    the data there is not covered."""
+    features = torch.tensor([[0.0, 0.0], [1.0, 2.0], [0.5, 1.0], [0.2, 0.4]], dtype=torch.float64)
+    root = torch.tensor([[0.0, -math.inf], [1.0, math.inf]], dtype=torch.float64)
+    allowed, axes = torch.tensor([True, False]), torch.tensor([True, True])
+    leaves = [(torch.tensor([0, 3]), torch.tensor([[0.0, -math.inf], [0.3, math.inf]], dtype=torch.float64)),
+              (torch.tensor([1, 2]), torch.tensor([[0.3, -math.inf], [1.0, math.inf]], dtype=torch.float64))]
+    boxes = cells._cell_boxes(features, root, leaves, overlap=0.0, extend=0.25, allowed=allowed, axes=axes)
+    for low, high, _, _ in boxes:
+        assert low[1] == -0.5 and high[1] == 2.5  # the data's range 0..2 extended by a quarter
+    assert boxes[0][0][0] == -0.25 and boxes[1][1][0] == 1.25  # the split input as before
 
 
 def test_point_bounds_are_the_one_step_sets_of_a_point():

@@ -2,7 +2,7 @@
 from torchrl_brsl.reach.body_frame import BodyFrame
 from torchrl_brsl.reach.cells import (NEAR_LEAVES, Cells, LeafLayout, fit_cells, held_out_factors, input_relevance,
                                       leaf_bounds, leaf_distance, leaf_gaps, leaf_layout, point_bounds,
-                                      split_directions, tree_nodes)
+                                      select_inputs, split_directions, tree_nodes)
 from torchrl_brsl.reach.data_driven import METHODS, DataDrivenReach
 from torchrl_brsl.reach.evaluation import SampledReach, env_trajectories, points_outside, sample_reach
 from torchrl_brsl.reach.examples import (BlackBoxSystem, CappedVelocityServo, DoubleIntegrator, KinematicBicycle,
@@ -20,4 +20,5 @@ __all__ = ["METHODS", "NEAR_LEAVES", "BlackBoxSystem", "BodyFrame", "CappedVeloc
            "fit_features", "fit_hinges", "held_out_factors", "hinge_features", "input_relevance", "leaf_bounds",
            "leaf_distance", "leaf_gaps", "leaf_layout", "load_offline_data", "point_bounds", "points_outside",
            "product_features", "product_relaxation", "prune_hinges", "refine_hinges", "relu_relaxation",
-           "residual_lipschitz", "sample_reach", "save_offline_data", "split_directions", "stack_steps", "tree_nodes"]
+           "residual_lipschitz", "sample_reach", "save_offline_data", "select_inputs", "split_directions", "stack_steps",
+           "tree_nodes"]

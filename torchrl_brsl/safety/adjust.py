@@ -288,7 +288,7 @@ class FacetQPAdjuster:
         low, high = checker.action_low, checker.action_high
         rollout = jacobian = None
         if checker.plan_dependent:  # a local model: one rollout gives the reference's sets and their Jacobian
-            *rollout, jacobian = _leaf_rollout(checker, x0, reference) if reference_rollout is None else reference_rollout
+            *rollout, jacobian = reference_rollout or _leaf_rollout(checker, x0, reference)
         ref_eval, gauge = checker.evaluate_with_gauge(x0, reference, obstacles, rollout=rollout)
         affine = checker.affine_for(x0, reference)  # None for a local model
         if affine is None and _feedback_linearisable(checker, x0, reference):  # braking policy: linearised tail
