@@ -80,7 +80,10 @@ def test_outputs_fitted_on_the_inputs_they_depend_on_are_tighter_and_sound(monke
     reach = fit(system, 500)
     assert cells.select_inputs(reach._scaled_data, xp[:, 2] - x[:, 2]).tolist() == [True, False, True, False]
     assert cells.select_inputs(reach._scaled_data, xp[:, 3] - x[:, 3]).tolist() == [False, True, False, True]
-    assert (reach.cell_weights == 0).any(), "some output should keep its own inputs only"
+    ignored = reach.cell_weights == 0  # [n, d]
+    assert ignored.any(), "some output should keep its own inputs only"
+    slopes = reach._cells.slopes[..., :ignored.shape[1]]  # [n, M, d]
+    assert (slopes.masked_select(ignored.unsqueeze(1).expand_as(slopes)) == 0).all()
     selected = sampled(system, reach)
     monkeypatch.setattr(cells, "select_inputs", lambda inputs, target: torch.ones(inputs.shape[1], dtype=torch.bool))
     every_input = sampled(system, fit(system, 500))

@@ -279,6 +279,8 @@ def _output_candidates(inputs: Tensor, target: Tensor, noise_radius: Tensor, n_a
             leaves = [node for node in nodes if len(node[0]) < 2 * leaf_size] or nodes[:1]
             boxes = _cell_boxes(features, nodes[0][1], leaves, overlap, extend, allowed, axes)
             fits = [_affine_fit(masked[fit], residual[fit, None]) for _, _, fit, _ in boxes]
+            for theta, _ in fits:  # a zeroed input's slope, exactly (the curvature floor of any other is infinite)
+                theta[1:][~support] = 0.0
             relevance = input_relevance(torch.stack([theta[1:] for theta, _ in fits]), floor=0.0)[0]
             for weights in (relevance.clamp_min(floor) * support for floor in METRIC_FLOORS):
                 parts = _output_cells(inputs, boxes, fits, noise_radius, weights, directions, margin)
