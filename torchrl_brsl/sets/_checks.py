@@ -58,7 +58,7 @@ def check_same_dtype_device(**tensors: Tensor) -> None:
 
 
 def broadcast_shapes(*shapes) -> torch.Size:
-    """:func:`torch.broadcast_shapes`, without its cost (about 20 µs) where the shapes are equal already (the
+    """:func:`torch.broadcast_shapes`, without its cost (6.7 µs against 0.8) where the shapes are equal already (the
     usual case on a control loop's hot path).
 
     Examples:
