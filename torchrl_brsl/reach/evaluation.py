@@ -77,6 +77,62 @@ def sample_reach(reach: DataDrivenReach, step: Callable[[Tensor, Tensor], Tensor
     return SampledReach(torch.stack(outside), torch.stack(ratios), covered, samples)
 
 
+MAX_VERTEX_GENERATORS = 12
+"""Noise zonotopes with up to this many generators have every vertex checked by :func:`worst_noise_outside`;
+larger ones get this many random sign vectors' worth (``2 ** 12``)."""
+
+
+def worst_noise_outside(reach: DataDrivenReach, dynamics: Callable[[Tensor, Tensor], Tensor], states: Tensor,
+                        actions: Tensor, chunk: int = 2048, seed: int = 0) -> tuple[Tensor, Tensor]:
+    """Whether a true successor with its noise at a vertex of ``W`` leaves the model's one-step set.
+
+    The model claims ``f(x, u) + W ⊆ S(x, u)`` for the one-step set ``S`` from a point. A successor
+    drawn with uniform noise seldom reaches ``W``'s edge, and along a plan each set's over-approximation
+    hides an error bound too small at one step; so a model can pass :func:`sample_reach` while its bound
+    is short at some inputs. Here every vertex of ``W`` is added to the noiseless successor (a convex set
+    holds ``f + W`` iff it holds its vertices), which checks the claim itself at each query.
+
+    Args:
+        reach: the fitted model; its noise ``W`` is the one checked.
+        dynamics: the true system without noise, ``dynamics(x [Q, n], u [Q, m]) -> [Q, n]``.
+        states, actions: ``[Q, n]`` and ``[Q, m]`` the queries.
+        chunk: queries per batch of one-step sets.
+        seed: for the random vertices of a noise zonotope with more than :data:`MAX_VERTEX_GENERATORS` generators.
+
+    Returns:
+        ``(outside [Q], claimed [Q])``: a vertex outside (:func:`points_outside`), and whether the model claims the
+        query's set (only those count).
+
+    Examples:
+        >>> system = SaturatedThrustPoint()
+        >>> reach = DataDrivenReach.fit(*system.offline_data(500), system.noise, translation_invariant_dims=(0, 1))
+        >>> gen = torch.Generator().manual_seed(1)
+        >>> outside, claimed = worst_noise_outside(reach, system.dynamics, system.sample_states(1000, gen),
+        ...                                        system.sample_actions(1000, generator=gen))
+        >>> int(outside[claimed].sum())
+        0
+    """
+    if states.ndim != 2 or actions.ndim != 2 or states.shape[0] != actions.shape[0]:
+        raise ValueError(f"`states` must be [Q, n] and `actions` [Q, m]; got {tuple(states.shape)} and "
+                         f"{tuple(actions.shape)}")
+    noise = reach.noise
+    generators = noise.generators.to(states.dtype)
+    p = generators.shape[-1]
+    if p <= MAX_VERTEX_GENERATORS:
+        signs = torch.tensor(list(itertools.product((-1.0, 1.0), repeat=p)), dtype=states.dtype).reshape(-1, p)
+    else:
+        gen = torch.Generator().manual_seed(seed)
+        signs = torch.randint(0, 2, (2 ** MAX_VERTEX_GENERATORS, p), generator=gen).to(states.dtype) * 2 - 1
+    vertices = noise.center.to(states.dtype) + signs @ generators.T  # [V, n]
+    outside, claimed = [], []
+    for x, u in zip(states.split(chunk), actions.split(chunk)):
+        sets, covered = reach.reach_covered(Zonotope.from_point(x), u.unsqueeze(1))
+        successors = dynamics(x, u).to(sets.center.dtype) + vertices.unsqueeze(1)  # [V, q, n]
+        outside.append(points_outside(sets[:, 0], successors).any(0))
+        claimed.append(covered)
+    return torch.cat(outside), torch.cat(claimed)
+
+
 def env_trajectories(env, plans: int, horizon: int, action_low: Tensor, action_high: Tensor, braking_action: Tensor,
                      warmup: int = 6, state_key: str = "state") -> tuple[Tensor, Tensor, Tensor]:
     """True trajectories of an env along random plans from reachable states, for checking sets against.

@@ -1,0 +1,58 @@
+"""Checking fitted sets against the true system: the worst-noise one-step check."""
+import pytest
+import torch
+
+from torchrl_brsl.reach import DoubleIntegrator, sample_reach, worst_noise_outside
+from torchrl_brsl.sets import Zonotope
+
+from reach_support import shared_fit
+
+
+def _queries(system, num=400, seed=1):
+    gen = torch.Generator().manual_seed(seed)
+    return system.sample_states(num, gen) * 0.7, system.sample_actions(num, generator=gen)
+
+
+def test_a_successor_past_the_set_by_a_hair_at_a_noise_vertex_is_caught_where_uniform_noise_misses_it():
+    """A fake true system puts ``f + W`` inside the one-step set but for its last state dim, 1e-6 past the set's
+    edge at one corner of ``W``: every query is flagged, and the same system sampled with uniform noise (300 draws
+    per query) is flagged on none."""
+    system = DoubleIntegrator()
+    reach = shared_fit(system, 500, method="global")
+    states, actions = _queries(system)
+    sets = reach.reach(Zonotope.from_point(states), actions.unsqueeze(1))[:, 0]
+    noise = reach.noise
+    edge = sets.generators.abs().sum(-1) - noise.generators.abs().sum(-1)  # [Q, n] room left for f around the centre
+
+    def inside(x, u):
+        return sets.center - noise.center
+
+    def past(x, u):
+        shifted = inside(x, u).clone()
+        shifted[:, -1] += edge[:, -1] + 1e-6
+        return shifted
+
+    outside, claimed = worst_noise_outside(reach, inside, states, actions)
+    assert claimed.all() and not outside.any()
+    outside, _ = worst_noise_outside(reach, past, states, actions)
+    assert outside.all()
+
+    gen = torch.Generator().manual_seed(2)
+
+    def uniform_step(x, u):
+        w = (torch.rand(x.shape, generator=gen, dtype=x.dtype) * 2 - 1) @ noise.generators.T + noise.center
+        return past(states, actions)[index] + w
+
+    caught = 0
+    for index in range(0, len(states), 40):
+        result = sample_reach(reach, uniform_step, states[index:index + 1], actions[index:index + 1, None], 300)
+        caught += result.violations
+    assert caught == 0, "a hair past one corner of W should be all but invisible to uniform noise"
+
+
+def test_worst_noise_outside_rejects_mismatched_queries_by_name():
+    system = DoubleIntegrator()
+    reach = shared_fit(system, 500, method="global")
+    states, actions = _queries(system)
+    with pytest.raises(ValueError, match="`states` must be"):
+        worst_noise_outside(reach, system.dynamics, states, actions[:-1])
