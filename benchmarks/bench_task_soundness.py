@@ -8,12 +8,15 @@ cap on; the uncapped ``hexarotor_wind`` with the recipe's 50-step offline episod
 recipes' layer: ``n_brk + 1`` steps) and of random actions, from states the robot reaches
 (:func:`~torchrl_brsl.reach.env_trajectories`). Printed per task and data size: plans claimed, true
 states outside their claimed sets, plans with one, and the worst excess of an outside state beyond its
-set's interval half-width (with that half-width, its dim and step). ``--timing`` adds, per task, what the
+set's interval half-width (with that half-width, its dim and step); then ``1-step worst``: one-step queries along a
+random walk of the empty task (``--queries``, the offline data's distribution), their noiseless successors (the
+next state less the task's ``last_noise``) with the noise at every vertex of ``W`` outside their one-step sets, over
+the queries claimed (:func:`~torchrl_brsl.reach.worst_noise_outside`). ``--timing`` adds, per task, what the
 data size costs: the time of a plan's sets (compiled, one CPU thread, at 1 and 10 plans a call), the
 models of every data size timed in alternation.
 
 Usage: ``python benchmarks/bench_task_soundness.py [--plans 400] [--data 500,2000] [--tasks quadrotor_nav,...]
-[--timing] [--held-out-folds 5]``
+[--queries 2000] [--timing] [--held-out-folds 5]``
 """
 from __future__ import annotations
 
@@ -24,7 +27,8 @@ import time
 import torch
 
 import envs
-from torchrl_brsl.reach import BodyFrame, DataDrivenReach, collect_offline_data, env_trajectories
+from torchrl_brsl.reach import (BodyFrame, DataDrivenReach, collect_offline_data, env_trajectories,
+                                worst_noise_outside)
 from torchrl_brsl.sets import Zonotope
 
 # name -> (task, options of envs.make, fitted in the body frame, offline episode length)
@@ -36,8 +40,30 @@ TASKS = {
 }
 
 
-def check(name: str, steps: int, plans: int, seed: int,
-          held_out_folds: int = 0) -> tuple[str, DataDrivenReach, Zonotope, torch.Tensor]:
+def worst_noise(name: str, reach: DataDrivenReach, queries: int, seed: int) -> str:
+    """``outside/claimed`` of ``queries`` one-step queries along a random walk of the empty task, at the worst noise."""
+    task, options, _, episode = TASKS[name]
+    env = envs.make(task, empty=True, seed=13, **options, **({"episode_steps": episode} if episode else {}))
+    gen = torch.Generator().manual_seed(seed)
+    low, high = env.action_spec.space.low.double(), env.action_spec.space.high.double()
+    states, actions, clean = [], [], []
+    td = env.reset()
+    while len(states) < queries:
+        action = low + (high - low) * torch.rand(low.shape, generator=gen, dtype=torch.float64)
+        td = env.step(td.set("action", action.to(env.action_spec.dtype)))
+        if not td["next", "done"]:  # the offline data's transitions: within an episode
+            states.append(td["state"].double())
+            actions.append(td["action"].double())
+            clean.append(td["next", "state"].double() - torch.as_tensor(env.task.last_noise))
+        td = env.reset() if td["next", "done"] else env.step_mdp(td)
+    successors = torch.stack(clean)
+    outside, claimed = worst_noise_outside(reach, lambda x, u: successors, torch.stack(states), torch.stack(actions),
+                                           chunk=queries)
+    return f"{int(outside[claimed].sum())}/{int(claimed.sum())}"
+
+
+def check(name: str, steps: int, plans: int, seed: int, held_out_folds: int = 0,
+          queries: int = 2000) -> tuple[str, DataDrivenReach, Zonotope, torch.Tensor]:
     """One row: fit from ``steps`` offline transitions, sample ``plans`` true trajectories, count the states outside.
     Also the model, the plans' initial sets and their actions."""
     task, options, body, episode = TASKS[name]
@@ -64,7 +90,7 @@ def check(name: str, steps: int, plans: int, seed: int,
                  f"{f' (dim {dim}, step {step + 1})':>16}")
     row = (f"{name:<20}{steps:>6}{f'{int(claimed.sum())}/{plans}':>10}"
            f"{f'{int(outside.sum())}/{int(claimed.sum()) * outside.shape[1]}':>14}{int(outside.any(-1).sum()):>8}"
-           f"{worst}")
+           f"{worst}{worst_noise(name, reach, queries, seed):>14}")
     return row, reach, initial, actions
 
 
@@ -90,6 +116,7 @@ def main() -> None:
     parser.add_argument("--data", default="500,2000", help="comma-separated offline steps")
     parser.add_argument("--tasks", default=",".join(TASKS), help=f"comma-separated, of {', '.join(TASKS)}")
     parser.add_argument("--seed", type=int, default=0, help="torch seed of the offline actions and the plans")
+    parser.add_argument("--queries", type=int, default=2000, help="one-step queries of the worst-noise check")
     parser.add_argument("--timing", action="store_true", help="also time each data size's plan sets (compiles them)")
     parser.add_argument("--held-out-folds", type=int, default=0,
                         help="fit with DataDrivenReach.fit(held_out_folds=K): leaves widened where held-out "
@@ -99,12 +126,13 @@ def main() -> None:
     if unknown:
         parser.error(f"unknown tasks {unknown}; choose from {sorted(TASKS)}")
     torch.set_num_threads(1)
-    print(f"{'task':<20}{'data':>6}{'claimed':>10}{'outside':>14}{'plans':>8}{'worst excess of half-width':>34}")
+    print(f"{'task':<20}{'data':>6}{'claimed':>10}{'outside':>14}{'plans':>8}{'worst excess of half-width':>34}"
+          f"{'1-step worst':>14}")
     for name in args.tasks.split(","):
         models = {}
         for steps in (int(s) for s in args.data.split(",")):
             start = time.perf_counter()
-            row, *models[steps] = check(name, steps, args.plans, args.seed, args.held_out_folds)
+            row, *models[steps] = check(name, steps, args.plans, args.seed, args.held_out_folds, args.queries)
             print(f"{row}   {time.perf_counter() - start:.0f} s", flush=True)
         if args.timing:
             print(plan_times(models), flush=True)

@@ -44,6 +44,9 @@ class SafetyTask(base.Task):
 
     Attributes:
         noise_scale: multiplies the process noise; 0 gives noiseless replays (tests).
+        last_noise: ``[n]`` the noise added to the state by the last step (zeros without noise), so that
+            ``next state - last_noise`` is the noiseless successor (checks of a model at the noise's worst,
+            ``benchmarks/bench_task_soundness.py``).
     """
 
     name: ClassVar[str]
@@ -81,6 +84,7 @@ class SafetyTask(base.Task):
         self.layout_index = layout
         self.terminate_on_collision = bool(terminate_on_collision)
         self.noise_scale = 1.0
+        self.last_noise = np.zeros(len(self.noise_center))
         self.layout: Layout | None = None
         self._slots: ObstacleSlots | None = None
         self._robot_geoms: np.ndarray | None = None
@@ -177,10 +181,11 @@ class SafetyTask(base.Task):
         self._apply_action(action, physics)
 
     def after_step(self, physics):
+        self.last_noise = np.zeros(len(self.noise_center))
         if self.noise_scale:
             z = self.random.uniform(-1.0, 1.0, self.noise_generators.shape[1])
-            noise = self.noise_scale * (self.noise_center + self.noise_generators @ z)
-            self._add_state_noise(physics, noise)
+            self.last_noise = self.noise_scale * (self.noise_center + self.noise_generators @ z)
+            self._add_state_noise(physics, self.last_noise)
             mujoco.mj_fwdVelocity(physics.model.ptr, physics.data.ptr)
         self._collision = self._in_contact(physics)
         self._update_progress(physics)

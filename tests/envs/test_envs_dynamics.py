@@ -112,7 +112,7 @@ def _restore(env, snapshot):
 @pytest.mark.parametrize("name", envs.TASKS)
 def test_noise_stays_in_the_noise_zonotope(name):
     """Replay each step from the same physics state without noise: the difference of
-    the next states must lie in W = Z(noise_center, noise_generators)."""
+    the next states must lie in W = Z(noise_center, noise_generators), and be the task's ``last_noise``."""
     info = envs.safety_info(name)
     env = envs.make(name, seed=0, empty=True)
     env.reset()
@@ -126,11 +126,14 @@ def test_noise_stays_in_the_noise_zonotope(name):
         snapshot = _snapshot(env)
         task.noise_scale = 1.0
         noisy = manual_step(env, action)
+        drawn = task.last_noise
         after = _snapshot(env)
         _restore(env, snapshot)
         task.noise_scale = 0.0
         clean = manual_step(env, action)
+        assert not task.last_noise.any()
         _restore(env, after)
+        np.testing.assert_allclose(drawn, noisy - clean, atol=1e-9)  # what the task reports it added
         z, *_ = np.linalg.lstsq(G, noisy - clean - c, rcond=None)
         np.testing.assert_allclose(G @ z + c, noisy - clean, atol=1e-9)
         coefficients.append(z)

@@ -77,6 +77,7 @@ def test_noise_changes_only_v_and_omega_within_their_bounds():
         before = physics.get_state().copy()
         task.noise_scale = 1.0
         noisy = manual_step(env, action)
+        drawn = task.last_noise
         after = physics.get_state().copy()
         physics.set_state(before)
         physics.forward()
@@ -84,6 +85,7 @@ def test_noise_changes_only_v_and_omega_within_their_bounds():
         difference = noisy - manual_step(env, action)
         physics.set_state(after)
         physics.forward()
+        np.testing.assert_allclose(difference, drawn, atol=1e-9)  # what the task reports it added
         np.testing.assert_allclose(difference[:4], 0.0, atol=1e-12)
         assert abs(difference[4]) <= 0.005 + 1e-12 and abs(difference[5]) <= 0.01 + 1e-12
         wheels = physics.data.qvel[4:6] * WHEEL_RADIUS
