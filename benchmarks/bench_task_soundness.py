@@ -28,7 +28,7 @@ import torch
 
 import envs
 from torchrl_brsl.reach import (BodyFrame, DataDrivenReach, collect_offline_data, env_trajectories,
-                                worst_noise_outside)
+                                noiseless_transitions, worst_noise_outside)
 from torchrl_brsl.sets import Zonotope
 
 # name -> (task, options of envs.make, fitted in the body frame, offline episode length)
@@ -44,21 +44,8 @@ def worst_noise(name: str, reach: DataDrivenReach, queries: int, seed: int) -> s
     """``outside/claimed`` of ``queries`` one-step queries along a random walk of the empty task, at the worst noise."""
     task, options, _, episode = TASKS[name]
     env = envs.make(task, empty=True, seed=13, **options, **({"episode_steps": episode} if episode else {}))
-    gen = torch.Generator().manual_seed(seed)
-    low, high = env.action_spec.space.low.double(), env.action_spec.space.high.double()
-    states, actions, clean = [], [], []
-    td = env.reset()
-    while len(states) < queries:
-        action = low + (high - low) * torch.rand(low.shape, generator=gen, dtype=torch.float64)
-        td = env.step(td.set("action", action.to(env.action_spec.dtype)))
-        if not td["next", "done"]:  # the offline data's transitions: within an episode
-            states.append(td["state"].double())
-            actions.append(td["action"].double())
-            clean.append(td["next", "state"].double() - torch.as_tensor(env.task.last_noise))
-        td = env.reset() if td["next", "done"] else env.step_mdp(td)
-    successors = torch.stack(clean)
-    outside, claimed = worst_noise_outside(reach, lambda x, u: successors, torch.stack(states), torch.stack(actions),
-                                           chunk=queries)
+    states, actions, successors = noiseless_transitions(env, queries, torch.Generator().manual_seed(seed))
+    outside, claimed = worst_noise_outside(reach, lambda *_: successors, states, actions, chunk=queries)
     return f"{int(outside[claimed].sum())}/{int(claimed.sum())}"
 
 

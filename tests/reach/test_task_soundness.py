@@ -3,7 +3,8 @@ import pytest
 import torch
 
 import envs
-from torchrl_brsl.reach import BodyFrame, DataDrivenReach, cells, collect_offline_data, env_trajectories, hinges
+from torchrl_brsl.reach import (BodyFrame, DataDrivenReach, cells, collect_offline_data, env_trajectories, hinges,
+                                noiseless_transitions, worst_noise_outside)
 from torchrl_brsl.sets import Zonotope
 
 # task options, the offline data, the horizon checked, the share of plans the model must claim
@@ -60,11 +61,22 @@ PLANS = {"quadrotor_nav:capped": 400}
 _HIDDEN_ATTITUDE = "hidden attitude: the next velocity depends on the tilt, not in the state"
 KNOWN_GAPS = {"quadrotor_nav:rotor": _HIDDEN_ATTITUDE, "hexarotor_wind:rotor": _HIDDEN_ATTITUDE}
 
+# cases whose one-step claim fails at the worst noise for a known reason (their sampled plans are sound): the world
+# frame fits the heading vector (cos θ, sin θ) on itself, and where sin θ reaches 1 the model's lower edge
+# for it lies above the truth: 11 of 1,000 queries, 0.013-0.015 beyond a 0.036 bound. The recipes fit the body frame.
+WORST_NOISE_GAPS = {"diffdrive_nav:capped": "world-frame heading vector at the top of its circle"}
 
-def sampled(name: str, options: dict, steps: int, horizon: int, n_plans: int, body: bool = False, seed: int = 0):
+
+# one-step queries along a random walk checked at every vertex of the noise (worst_noise_outside): the claim itself,
+# which plans sampled with uniform noise under-test
+WORST_NOISE_QUERIES = 1000
+
+
+def sampled(name: str, options: dict, steps: int, horizon: int, n_plans: int, body: bool = False, seed: int = 0,
+            model: list | None = None):
     """The task's model fitted from ``steps`` random offline steps (torch seed ``seed``), its sets along ``n_plans``
     sampled plans from reachable states, and whether the true states lie in them: ``(sets, claimed [P], inside
-    [P, H])``."""
+    [P, H])``. ``model``: a list the fitted model is appended to."""
     torch.manual_seed(seed)
     info = envs.safety_info(name, robot=options.get("robot"))
     episode = {"episode_steps": OFFLINE_EPISODE[name]} if name in OFFLINE_EPISODE else {}
@@ -76,6 +88,8 @@ def sampled(name: str, options: dict, steps: int, horizon: int, n_plans: int, bo
     x0, plans, visited = env_trajectories(env, n_plans, horizon, info.action_low, info.action_high,
                                           info.braking_action)
     sets, claimed = reach.reach_covered(Zonotope.from_point(x0), plans)  # [plans, H]
+    if model is not None:
+        model.append(reach)
     return sets, claimed, sets.contains(visited)
 
 
@@ -86,14 +100,23 @@ def test_sampled_true_trajectories_stay_in_the_reachable_sets(case):
     name = case.split(":")[0]
     info = envs.safety_info(name, robot=options.get("robot"))
     n_plans = PLANS.get(case, 40)
-    sets, claimed, inside = sampled(name, options, steps, horizon, n_plans, body=case.endswith(":body"))
+    model = []
+    sets, claimed, inside = sampled(name, options, steps, horizon, n_plans, body=case.endswith(":body"), model=model)
     inside = inside[claimed]
     assert inside.all(), f"{int((~inside).sum())} of {inside.numel()} true states outside their sets"
+    env = envs.make(name, empty=True, seed=13, **options)
+    states, actions, successors = noiseless_transitions(env, WORST_NOISE_QUERIES, torch.Generator().manual_seed(0))
+    worst, one_step = worst_noise_outside(model[0], lambda *_: successors, states, actions, chunk=len(states))
+    message = f"{int(worst[one_step].sum())} of {int(one_step.sum())} one-step queries outside at the worst noise"
+    assert case in WORST_NOISE_GAPS or not worst[one_step].any(), message
     if gap and claimed.float().mean() < min_claimed:
         pytest.xfail(f"{gap}: {int(claimed.sum())} of {n_plans} plans claimed")
     assert claimed.float().mean() >= min_claimed, f"{int(claimed.sum())} of {n_plans} plans claimed"
     radius = sets.generators[claimed, -1][:, list(info.position_dims)].abs().sum(-1).amax()
     assert radius < max_radius
+    if case in WORST_NOISE_GAPS:
+        assert worst[one_step].any(), f"a known gap closed ({message}): remove it from WORST_NOISE_GAPS"
+        pytest.xfail(f"{WORST_NOISE_GAPS[case]}: {message}")
 
 
 def test_hinge_selection_past_the_noise_variance_fits_the_quadrotors_bend(monkeypatch):

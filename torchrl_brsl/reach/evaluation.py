@@ -133,6 +133,43 @@ def worst_noise_outside(reach: DataDrivenReach, dynamics: Callable[[Tensor, Tens
     return torch.cat(outside), torch.cat(claimed)
 
 
+def noiseless_transitions(env, queries: int, generator: torch.Generator | None = None,
+                          state_key: str = "state") -> tuple[Tensor, Tensor, Tensor]:
+    """Transitions of a random walk through a task, with their successors less the noise: for
+    :func:`worst_noise_outside` on a simulated robot.
+
+    Uniformly random actions in the bounds of the env's action spec drive the robot, reset whenever an episode ends
+    (the offline data's distribution, :func:`~torchrl_brsl.reach.collect_offline_data`); each transition within an
+    episode is kept with its next state less the noise the task reports it added (``env.task.last_noise``, which
+    the tasks of ``envs`` keep).
+
+    Args:
+        env: an unbatched TorchRL env of such a task (typically its empty variant).
+        queries: how many transitions to keep.
+        generator: the source of the random actions.
+        state_key: where the state is.
+
+    Returns:
+        ``(states [Q, n], actions [Q, m], successors [Q, n])``, float64; the actions as the env applied them.
+
+    Examples:
+        >>> x, u, clean = noiseless_transitions(envs.make("point_boxes", empty=True), 1000)
+        >>> outside, claimed = worst_noise_outside(reach, lambda *_: clean, x, u, chunk=len(x))
+    """
+    low, high = env.action_spec.space.low.double(), env.action_spec.space.high.double()
+    states, actions, successors = [], [], []
+    td = env.reset()
+    while len(states) < queries:
+        action = low + (high - low) * torch.rand(low.shape, generator=generator, dtype=torch.float64)
+        td = env.step(td.set("action", action.to(env.action_spec.dtype)))
+        if not td["next", "done"]:
+            states.append(td[state_key].double())
+            actions.append(td["action"].double())
+            successors.append(td["next", state_key].double() - torch.as_tensor(env.task.last_noise))
+        td = env.reset() if td["next", "done"] else env.step_mdp(td)
+    return torch.stack(states), torch.stack(actions), torch.stack(successors)
+
+
 def env_trajectories(env, plans: int, horizon: int, action_low: Tensor, action_high: Tensor, braking_action: Tensor,
                      warmup: int = 6, state_key: str = "state") -> tuple[Tensor, Tensor, Tensor]:
     """True trajectories of an env along random plans from reachable states, for checking sets against.
