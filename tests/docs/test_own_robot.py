@@ -37,6 +37,12 @@ def test_the_sets_contain_the_true_trajectories(walkthrough):
     assert inside[covered].all()
 
 
+def test_the_one_step_sets_hold_at_the_worst_noise(walkthrough):
+    worst, claimed = walkthrough["worst"], walkthrough["claimed"]
+    assert claimed.float().mean() > 0.9
+    assert not worst[claimed].any()
+
+
 def test_the_layer_keeps_the_rover_collision_free_and_moving(walkthrough):
     assert walkthrough["unprotected"] > 0  # the random policy does collide without the layer
     assert walkthrough["collisions"] == 0
