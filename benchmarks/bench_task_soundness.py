@@ -45,7 +45,7 @@ def worst_noise(name: str, reach: DataDrivenReach, queries: int, seed: int) -> s
     task, options, _, episode = TASKS[name]
     env = envs.make(task, empty=True, seed=13, **options, **({"episode_steps": episode} if episode else {}))
     states, actions, successors = noiseless_transitions(env, queries, torch.Generator().manual_seed(seed))
-    outside, claimed = worst_noise_outside(reach, lambda *_: successors, states, actions, chunk=queries)
+    outside, claimed = worst_noise_outside(reach, successors, states, actions)
     return f"{int(outside[claimed].sum())}/{int(claimed.sum())}"
 
 

@@ -1,8 +1,10 @@
 """Checking fitted sets against the true system: the worst-noise one-step check."""
+import types
+
 import pytest
 import torch
 
-from torchrl_brsl.reach import DoubleIntegrator, sample_reach, worst_noise_outside
+from torchrl_brsl.reach import DoubleIntegrator, noiseless_transitions, sample_reach, worst_noise_outside
 from torchrl_brsl.sets import Zonotope
 
 from reach_support import shared_fit
@@ -50,9 +52,24 @@ def test_a_successor_past_the_set_by_a_hair_at_a_noise_vertex_is_caught_where_un
     assert caught == 0, "a hair past one corner of W should be all but invisible to uniform noise"
 
 
-def test_worst_noise_outside_rejects_mismatched_queries_by_name():
+def test_given_successors_check_as_the_dynamics_in_chunks():
+    system = DoubleIntegrator()
+    reach = shared_fit(system, 500, method="global")
+    states, actions = _queries(system)
+    shifted = system.dynamics(states, actions)
+    shifted[::3, -1] += 1.0  # every third query far past its set
+    assert not worst_noise_outside(reach, system.dynamics, states, actions)[0].any()
+    given = worst_noise_outside(reach, shifted, states, actions, chunk=64)
+    assert torch.equal(given[0], torch.arange(len(states)) % 3 == 0) and given[1].all()
+
+
+def test_worst_noise_outside_and_noiseless_transitions_reject_bad_input_by_name():
     system = DoubleIntegrator()
     reach = shared_fit(system, 500, method="global")
     states, actions = _queries(system)
     with pytest.raises(ValueError, match="`states` must be"):
         worst_noise_outside(reach, system.dynamics, states, actions[:-1])
+    with pytest.raises(ValueError, match="`dynamics` as successors"):
+        worst_noise_outside(reach, states[:-1], states, actions)
+    with pytest.raises(TypeError, match="`env` must be a task"):
+        noiseless_transitions(types.SimpleNamespace(), 10)

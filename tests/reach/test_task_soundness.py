@@ -108,7 +108,7 @@ def test_sampled_true_trajectories_stay_in_the_reachable_sets(case):
     assert inside.all(), f"{int((~inside).sum())} of {inside.numel()} true states outside their sets"
     env = envs.make(name, empty=True, seed=13, **options)
     states, actions, successors = noiseless_transitions(env, WORST_NOISE_QUERIES, torch.Generator().manual_seed(0))
-    worst, one_step = worst_noise_outside(model[0], lambda *_: successors, states, actions, chunk=len(states))
+    worst, one_step = worst_noise_outside(model[0], successors, states, actions)
     message = f"{int(worst[one_step].sum())} of {int(one_step.sum())} one-step queries outside at the worst noise"
     assert case in WORST_NOISE_GAPS or not worst[one_step].any(), message
     if gap and claimed.float().mean() < min_claimed:

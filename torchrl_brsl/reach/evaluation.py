@@ -82,19 +82,21 @@ MAX_VERTEX_GENERATORS = 12
 larger ones get this many random sign vectors' worth (``2 ** 12``)."""
 
 
-def worst_noise_outside(reach: DataDrivenReach, dynamics: Callable[[Tensor, Tensor], Tensor], states: Tensor,
+def worst_noise_outside(reach: DataDrivenReach, dynamics: Callable[[Tensor, Tensor], Tensor] | Tensor, states: Tensor,
                         actions: Tensor, chunk: int = 2048, seed: int = 0) -> tuple[Tensor, Tensor]:
     """Whether a true successor with its noise at a vertex of ``W`` leaves the model's one-step set.
 
     The model claims ``f(x, u) + W ⊆ S(x, u)`` for the one-step set ``S`` from a point. A successor
     drawn with uniform noise seldom reaches ``W``'s edge, and along a plan each set's over-approximation
     hides an error bound too small at one step; so a model can pass :func:`sample_reach` while its bound
-    is short at some inputs. Here every vertex of ``W`` is added to the noiseless successor (a convex set
-    holds ``f + W`` iff it holds its vertices), which checks the claim itself at each query.
+    is short at some inputs. Here every vertex of ``W`` (a random :data:`MAX_VERTEX_GENERATORS`-th power of 2
+    of them for larger ones) is added to the noiseless successor (a convex set holds ``f + W`` iff it holds
+    its vertices), which checks the claim itself at each query.
 
     Args:
         reach: the fitted model; its noise ``W`` is the one checked.
-        dynamics: the true system without noise, ``dynamics(x [Q, n], u [Q, m]) -> [Q, n]``.
+        dynamics: the true system without noise, ``dynamics(x [q, n], u [q, m]) -> [q, n]`` (called per chunk), or
+            the noiseless successors ``[Q, n]`` themselves (:func:`noiseless_transitions`).
         states, actions: ``[Q, n]`` and ``[Q, m]`` the queries.
         chunk: queries per batch of one-step sets.
         seed: for the random vertices of a noise zonotope with more than :data:`MAX_VERTEX_GENERATORS` generators.
@@ -115,6 +117,9 @@ def worst_noise_outside(reach: DataDrivenReach, dynamics: Callable[[Tensor, Tens
     if states.ndim != 2 or actions.ndim != 2 or states.shape[0] != actions.shape[0]:
         raise ValueError(f"`states` must be [Q, n] and `actions` [Q, m]; got {tuple(states.shape)} and "
                          f"{tuple(actions.shape)}")
+    if isinstance(dynamics, Tensor) and dynamics.shape != states.shape:
+        raise ValueError(f"`dynamics` as successors must be [Q, n] like `states` {tuple(states.shape)}; got "
+                         f"{tuple(dynamics.shape)}")
     noise = reach.noise
     generators = noise.generators.to(states.dtype)
     p = generators.shape[-1]
@@ -125,9 +130,11 @@ def worst_noise_outside(reach: DataDrivenReach, dynamics: Callable[[Tensor, Tens
         signs = torch.randint(0, 2, (2 ** MAX_VERTEX_GENERATORS, p), generator=gen).to(states.dtype) * 2 - 1
     vertices = noise.center.to(states.dtype) + signs @ generators.T  # [V, n]
     outside, claimed = [], []
-    for x, u in zip(states.split(chunk), actions.split(chunk)):
+    given = dynamics.split(chunk) if isinstance(dynamics, Tensor) else None
+    for index, (x, u) in enumerate(zip(states.split(chunk), actions.split(chunk))):
         sets, covered = reach.reach_covered(Zonotope.from_point(x), u.unsqueeze(1))
-        successors = dynamics(x, u).to(sets.center.dtype) + vertices.unsqueeze(1)  # [V, q, n]
+        nominal = given[index] if given is not None else dynamics(x, u)
+        successors = nominal.to(sets.center.dtype) + vertices.unsqueeze(1)  # [V, q, n]
         outside.append(points_outside(sets[:, 0], successors).any(0))
         claimed.append(covered)
     return torch.cat(outside), torch.cat(claimed)
@@ -154,8 +161,11 @@ def noiseless_transitions(env, queries: int, generator: torch.Generator | None =
 
     Examples:
         >>> x, u, clean = noiseless_transitions(envs.make("point_boxes", empty=True), 1000)
-        >>> outside, claimed = worst_noise_outside(reach, lambda *_: clean, x, u, chunk=len(x))
+        >>> outside, claimed = worst_noise_outside(reach, clean, x, u)
     """
+    if not hasattr(getattr(env, "task", None), "last_noise"):
+        raise TypeError(f"`env` must be a task of `envs`, whose task reports the noise of its last step "
+                        f"(`env.task.last_noise`); got {type(env).__name__}")
     low, high = env.action_spec.space.low.double(), env.action_spec.space.high.double()
     states, actions, successors = [], [], []
     td = env.reset()
