@@ -153,9 +153,10 @@ def test_the_one_step_claim_holds_at_the_worst_noise_thanks_to_the_bend_term(mon
 
 
 def test_the_bend_term_covers_the_slabs_between_same_sign_parallel_knots_only():
-    """Two parallel hinges whose slope changes share a sign (a smooth bend cut in pieces) add ``J s / 8`` to the
-    leaves meeting the slab between their knots; a knot between them splits the slab; opposite signs (a servo's two
-    saturations) and a lone hinge add nothing."""
+    """Two parallel hinges whose slope changes share a sign (a smooth bend cut in pieces) add ``κ s² / 8`` to the
+    leaves meeting the slab between their knots, ``κ`` the larger of the knots' slope change over their mean spacing;
+    a wide gap beside a narrow one gets the narrow one's curvature; opposite signs (a servo's two saturations) and a
+    lone hinge add nothing."""
     def features(directions, knots, coefficients):
         t = torch.float64
         return Features(torch.tensor(directions, dtype=t), torch.tensor(knots, dtype=t), torch.zeros(0, 2, 2, dtype=t),
@@ -164,11 +165,11 @@ def test_the_bend_term_covers_the_slabs_between_same_sign_parallel_knots_only():
     low = torch.tensor([[-1.0, 0.0], [0.05, 0.0], [0.5, 0.0]], dtype=torch.float64)  # leaves along input 0
     high = torch.tensor([[-0.5, 1.0], [0.2, 1.0], [1.0, 1.0]], dtype=torch.float64)
     bend = cells.bend_error(low, high, features([[1.0, 0.0], [-2.0, 0.0]], [0.0, -0.8], [0.3, 0.2]))
-    # hinge 1 is relu(-2 z + 0.8)... its knot at z = 0.4 and slope change 0.4 along input 0, hinge 0's 0.3 at 0
-    torch.testing.assert_close(bend, torch.tensor([0.0, 0.4 * 0.4 / 8, 0.0], dtype=torch.float64))
-    split = cells.bend_error(low, high, features([[1.0, 0.0], [-2.0, 0.0], [1.0, 0.0]], [0.0, -0.8, 0.1],
-                                                [0.3, 0.2, 0.1]))
-    torch.testing.assert_close(split, torch.tensor([0.0, 0.4 * 0.3 / 8, 0.0], dtype=torch.float64))
+    # hinge 1 is relu(-2 z + 0.8): its knot at z = 0.4, slope change 0.4 (κ = 0.4 / 0.4); hinge 0's 0.3 at 0
+    torch.testing.assert_close(bend, torch.tensor([0.0, 1.0 * 0.4 ** 2 / 8, 0.0], dtype=torch.float64))
+    # knots at 0, 0.1 and 0.4, slope changes 0.3 each: κ = 3, 1.5 (mean spacing 0.2) and 1; the slab 0.1..0.4 takes 1.5
+    uneven = cells.bend_error(low, high, features([[1.0, 0.0]] * 3, [0.0, 0.1, 0.4], [0.3, 0.3, 0.3]))
+    torch.testing.assert_close(uneven, torch.tensor([0.0, 1.5 * 0.3 ** 2 / 8, 0.0], dtype=torch.float64))
     servo = cells.bend_error(low, high, features([[1.0, 0.0], [1.0, 0.0]], [0.0, 0.4], [0.3, -0.3]))
     lone = cells.bend_error(low, high, features([[1.0, 0.0]], [0.0], [0.3]))
     assert not servo.any() and not lone.any()

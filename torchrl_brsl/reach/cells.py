@@ -440,9 +440,11 @@ def bend_error(z_low: Tensor, z_high: Tensor, features: Features) -> Tensor:
     ``J = |c| |a|`` at ``t = k / |a|``, of the sign of ``c`` whichever way ``a`` points. Two parallel
     hinges whose slope changes have one sign cut a bend (a tanh thrust, a quadratic drag) into pieces;
     between their knots, ``s`` apart along ``â``, the true output bends smoothly and strays from a chord
-    by up to ``J s / 8`` (a parabola whose slope changes by ``J`` over ``s``), less than the noise where
-    the data cannot see it. The leaf error grows by this over the slabs between such knots that its box
-    meets. A lone kink, or two of opposite signs (a servo saturating on either side of its ramp), is the
+    by up to ``κ s² / 8`` (a parabola of curvature ``κ``), less than the noise where the data cannot see
+    it. Each knot's ``κ`` is its ``J`` over its share of the line, the mean of its spacings to the parallel
+    knots on either side (the one there is, at an end), and the pair takes the larger: a wide gap beside
+    narrow ones gets the curvature the narrow ones show. The leaf error grows by this over the slabs
+    between such knots that its box meets. A lone kink, or two of opposite signs (a servo saturating on either side of its ramp), is the
     hard kink it fits. (Without this term, the saturated-thrust point's velocity, fitted with 8 hinges on
     500 steps, left 90 of 20,000 random one-step queries' true successors outside their sets at a vertex of
     the noise, up to 16 % of the noise beyond; :func:`~torchrl_brsl.reach.evaluation.worst_noise_outside`.)
@@ -466,8 +468,13 @@ def bend_error(z_low: Tensor, z_high: Tensor, features: Features) -> Tensor:
         torch.maximum(own, other).unsqueeze(-1) - other.unsqueeze(1) > 0)  # [H, H, H]: knot m between i and j
     pair = parallel & (coefficients.sign().unsqueeze(0) == coefficients.sign().unsqueeze(1)) & ~between.any(-1)
     pair.fill_diagonal_(False)
-    jump = (coefficients.abs() * length).unsqueeze(1).maximum((coefficients.abs() * length).unsqueeze(0))
-    stray = torch.where(pair, jump * (own - other).abs() / 8, 0.0)  # [H, H]
+    gap = torch.where(parallel & ~torch.eye(len(knots), dtype=torch.bool), other - own, torch.nan)  # [H, H]
+    left = torch.where(gap < 0, -gap, torch.inf).amin(-1)
+    right = torch.where(gap > 0, gap, torch.inf).amin(-1)
+    spacing = torch.where(torch.isinf(left), right, torch.where(torch.isinf(right), left, (left + right) / 2))
+    curvature = coefficients.abs() * length / spacing  # [H]: each knot's slope change over its share of the line
+    stray = torch.where(pair, curvature.unsqueeze(1).maximum(curvature.unsqueeze(0)) * (own - other).square() / 8,
+                        0.0)  # [H, H]
     centre, radius = (z_low + z_high) / 2, (z_high - z_low) / 2
     t, reach = centre @ unit.T, radius @ unit.abs().T  # [M, H]
     slab_low, slab_high = torch.minimum(own, other), torch.maximum(own, other)  # [H, H]
