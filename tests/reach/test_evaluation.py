@@ -26,13 +26,9 @@ def test_a_successor_past_the_set_by_a_hair_at_a_noise_vertex_is_caught_where_un
     noise = reach.noise
     edge = sets.generators.abs().sum(-1) - noise.generators.abs().sum(-1)  # [Q, n] room left for f around the centre
 
-    def inside(x, u):
-        return sets.center - noise.center
-
-    def past(x, u):
-        shifted = inside(x, u).clone()
-        shifted[:, -1] += edge[:, -1] + 1e-6
-        return shifted
+    inside = sets.center - noise.center
+    past = inside.clone()
+    past[:, -1] += edge[:, -1] + 1e-6
 
     outside, claimed = worst_noise_outside(reach, inside, states, actions)
     assert claimed.all() and not outside.any()
@@ -40,13 +36,12 @@ def test_a_successor_past_the_set_by_a_hair_at_a_noise_vertex_is_caught_where_un
     assert outside.all()
 
     gen = torch.Generator().manual_seed(2)
-
-    def uniform_step(x, u):
-        w = (torch.rand(x.shape, generator=gen, dtype=x.dtype) * 2 - 1) @ noise.generators.T + noise.center
-        return past(states, actions)[index] + w
-
     caught = 0
     for index in range(0, len(states), 40):
+        def uniform_step(x, u, nominal=past[index]):
+            return nominal + (torch.rand(x.shape, generator=gen, dtype=x.dtype) * 2 - 1) @ noise.generators.T + \
+                noise.center
+
         result = sample_reach(reach, uniform_step, states[index:index + 1], actions[index:index + 1, None], 300)
         caught += result.violations
     assert caught == 0, "a hair past one corner of W should be all but invisible to uniform noise"

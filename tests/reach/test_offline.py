@@ -20,6 +20,19 @@ def test_collects_consecutive_transitions_and_restarts_outside_the_data_region()
     assert chained.float().mean() > 0.9
 
 
+def test_records_what_a_callable_reads_from_the_env_after_each_step():
+    """``record``: here the noise each step added, which stays in W and varies from step to step."""
+    env = envs.make("point_boxes", empty=True, seed=3)
+    data = collect_offline_data(env, steps=50, generator=torch.Generator().manual_seed(0),
+                                record=lambda stepped: stepped.task.last_noise)
+    info = envs.safety_info("point_boxes")
+    noise = data["recorded"]
+    assert noise.shape == data["x_plus"].shape and noise.dtype == torch.float64
+    radius = info.noise_generators.double().abs().sum(-1)
+    assert ((noise - info.noise_center.double()).abs() <= radius + 1e-12).all()
+    assert noise.std(0)[radius > 0].min() > 0
+
+
 def test_save_load_roundtrip_and_fit(tmp_path):
     env = envs.make("diffdrive_nav", empty=True, seed=4)
     data = collect_offline_data(env, steps=100)

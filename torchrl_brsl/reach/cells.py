@@ -444,10 +444,11 @@ def bend_error(z_low: Tensor, z_high: Tensor, features: Features) -> Tensor:
     it. Each knot's ``κ`` is its ``J`` over its share of the line, the mean of its spacings to the parallel
     knots on either side (the one there is, at an end), and the pair takes the larger: a wide gap beside
     narrow ones gets the curvature the narrow ones show. The leaf error grows by this over the slabs
-    between such knots that its box meets. A lone kink, or two of opposite signs (a servo saturating on either side of its ramp), is the
-    hard kink it fits. (Without this term, the saturated-thrust point's velocity, fitted with 8 hinges on
-    500 steps, left 90 of 20,000 random one-step queries' true successors outside their sets at a vertex of
-    the noise, up to 16 % of the noise beyond; :func:`~torchrl_brsl.reach.evaluation.worst_noise_outside`.)
+    between such knots that its box meets. A lone kink, or two of opposite signs (a servo saturating on
+    either side of its ramp), is the hard kink it fits. (Without this term, the saturated-thrust point's
+    velocity, fitted with 8 hinges on 500 steps, left 90 of 20,000 random one-step queries' true successors
+    outside their sets at a vertex of the noise, up to 16 % of the noise beyond;
+    :func:`~torchrl_brsl.reach.evaluation.worst_noise_outside`.)
 
     Args:
         z_low, z_high: ``[M, d]`` the leaves' boxes along the inputs.
@@ -464,14 +465,12 @@ def bend_error(z_low: Tensor, z_high: Tensor, features: Features) -> Tensor:
     # knot i's and j's positions along unit i (an opposite hinge's knot lies at -k / |a|)
     own = (knots / length).unsqueeze(1)  # [H, 1]
     other = (knots / length).unsqueeze(0) * cosine.sign()  # [H, H]
-    between = parallel.unsqueeze(1) & (other.unsqueeze(1) - torch.minimum(own, other).unsqueeze(-1) > 0) & (
-        torch.maximum(own, other).unsqueeze(-1) - other.unsqueeze(1) > 0)  # [H, H, H]: knot m between i and j
-    pair = parallel & (coefficients.sign().unsqueeze(0) == coefficients.sign().unsqueeze(1)) & ~between.any(-1)
-    pair.fill_diagonal_(False)
     gap = torch.where(parallel & ~torch.eye(len(knots), dtype=torch.bool), other - own, torch.nan)  # [H, H]
-    left = torch.where(gap < 0, -gap, torch.inf).amin(-1)
-    right = torch.where(gap > 0, gap, torch.inf).amin(-1)
-    spacing = torch.where(torch.isinf(left), right, torch.where(torch.isinf(right), left, (left + right) / 2))
+    left = torch.where(gap < 0, -gap, torch.inf).amin(-1, keepdim=True)  # [H, 1]: the nearest parallel knot below
+    right = torch.where(gap > 0, gap, torch.inf).amin(-1, keepdim=True)
+    same = coefficients.sign().unsqueeze(0) == coefficients.sign().unsqueeze(1)
+    pair = same & ((gap == -left) | (gap == right))  # adjacent: no parallel knot between them
+    spacing = torch.where(torch.isinf(left), right, torch.where(torch.isinf(right), left, (left + right) / 2))[:, 0]
     curvature = coefficients.abs() * length / spacing  # [H]: each knot's slope change over its share of the line
     stray = torch.where(pair, curvature.unsqueeze(1).maximum(curvature.unsqueeze(0)) * (own - other).square() / 8,
                         0.0)  # [H, H]

@@ -8,6 +8,7 @@ import torch
 from torch import Tensor
 
 from torchrl_brsl.reach.data_driven import DataDrivenReach
+from torchrl_brsl.reach.offline import collect_offline_data
 from torchrl_brsl.sets import Zonotope
 
 
@@ -145,10 +146,9 @@ def noiseless_transitions(env, queries: int, generator: torch.Generator | None =
     """Transitions of a random walk through a task, with their successors less the noise: for
     :func:`worst_noise_outside` on a simulated robot.
 
-    Uniformly random actions in the bounds of the env's action spec drive the robot, reset whenever an episode ends
-    (the offline data's distribution, :func:`~torchrl_brsl.reach.collect_offline_data`); each transition within an
-    episode is kept with its next state less the noise the task reports it added (``env.task.last_noise``, which
-    the tasks of ``envs`` keep).
+    The walk of the offline data (:func:`~torchrl_brsl.reach.collect_offline_data`, uniform actions from
+    ``generator``), each next state less the noise the task reports it added (``env.task.last_noise``, which the
+    tasks of ``envs`` keep).
 
     Args:
         env: an unbatched TorchRL env of such a task (typically its empty variant).
@@ -166,18 +166,9 @@ def noiseless_transitions(env, queries: int, generator: torch.Generator | None =
     if not hasattr(getattr(env, "task", None), "last_noise"):
         raise TypeError(f"`env` must be a task of `envs`, whose task reports the noise of its last step "
                         f"(`env.task.last_noise`); got {type(env).__name__}")
-    low, high = env.action_spec.space.low.double(), env.action_spec.space.high.double()
-    states, actions, successors = [], [], []
-    td = env.reset()
-    while len(states) < queries:
-        action = low + (high - low) * torch.rand(low.shape, generator=generator, dtype=torch.float64)
-        td = env.step(td.set("action", action.to(env.action_spec.dtype)))
-        if not td["next", "done"]:
-            states.append(td[state_key].double())
-            actions.append(td["action"].double())
-            successors.append(td["next", state_key].double() - torch.as_tensor(env.task.last_noise))
-        td = env.reset() if td["next", "done"] else env.step_mdp(td)
-    return torch.stack(states), torch.stack(actions), torch.stack(successors)
+    data = collect_offline_data(env, queries, state_key=state_key, generator=generator,
+                                record=lambda walked: walked.task.last_noise)
+    return data["x_minus"], data["u_minus"], data["x_plus"] - data["recorded"]
 
 
 def env_trajectories(env, plans: int, horizon: int, action_low: Tensor, action_high: Tensor, braking_action: Tensor,

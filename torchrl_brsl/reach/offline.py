@@ -2,17 +2,20 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Callable
 
 import torch
 from tensordict import TensorDict
 from tensordict.utils import NestedKey
+from torch import Tensor
 from torchrl.envs import EnvBase
 from tqdm.auto import tqdm
 
 
 def collect_offline_data(env: EnvBase, steps: int = 500, *, state_key: NestedKey = "state",
                          action_key: NestedKey = "action", policy=None, progress: bool = False,
-                         generator: torch.Generator | None = None) -> TensorDict:
+                         generator: torch.Generator | None = None,
+                         record: Callable[[EnvBase], Tensor] | None = None) -> TensorDict:
     """Collect ``steps`` transitions of random inputs (paper Sec. IV "Setup").
 
     The robot is driven by uniformly random actions (or ``policy``) in an obstacle-free
@@ -31,10 +34,12 @@ def collect_offline_data(env: EnvBase, steps: int = 500, *, state_key: NestedKey
         generator: the source of the random actions (``torch.Generator``), so that a
             collection is reproducible without seeding the global RNG; the env's own
             randomness (initial states, noise) comes from ``env.set_seed``.
+        record: called with the env after each step; its values are kept under ``recorded`` (e.g. the noise a
+            task of ``envs`` added, for :func:`~torchrl_brsl.reach.noiseless_transitions`).
 
     Returns:
         A TensorDict of batch ``[steps]`` with ``x_minus``, ``x_plus`` (``[steps, n]``) and
-        ``u_minus`` (``[steps, m]``), in float64.
+        ``u_minus`` (``[steps, m]``), in float64 (and ``recorded``, with ``record``).
 
     Examples:
         >>> data = collect_offline_data(envs.make("diffdrive_nav", empty=True), steps=500)
@@ -52,7 +57,7 @@ def collect_offline_data(env: EnvBase, steps: int = 500, *, state_key: NestedKey
         def policy(td):  # noqa: F811 - uniform in the action box, from ``generator``
             u = torch.rand(low.shape, generator=generator, dtype=torch.float64)
             return td.set(action_key, (low.double() + (high.double() - low.double()) * u).to(spec.dtype))
-    x_minus, x_plus, u_minus = [], [], []
+    x_minus, x_plus, u_minus, recorded = [], [], [], []
     td = env.reset()
     bar = tqdm(total=steps, desc="offline data", disable=not progress)
     while len(x_minus) < steps:
@@ -61,11 +66,16 @@ def collect_offline_data(env: EnvBase, steps: int = 500, *, state_key: NestedKey
         x_minus.append(td.get(state_key))
         u_minus.append(td.get(action_key))
         x_plus.append(td.get(("next", state_key)))
+        if record is not None:
+            recorded.append(torch.as_tensor(record(env)))
         bar.update(1)
         td = env.step_mdp(td) if not bool(td.get(("next", "done")).any()) else env.reset()
     bar.close()
     stack = lambda items: torch.stack(items).to(torch.float64)  # noqa: E731
-    return TensorDict(x_minus=stack(x_minus), x_plus=stack(x_plus), u_minus=stack(u_minus), batch_size=[steps])
+    data = TensorDict(x_minus=stack(x_minus), x_plus=stack(x_plus), u_minus=stack(u_minus), batch_size=[steps])
+    if record is not None:
+        data["recorded"] = stack(recorded)
+    return data
 
 
 def save_offline_data(data: TensorDict, path: str | Path) -> None:
