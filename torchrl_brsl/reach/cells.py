@@ -346,7 +346,8 @@ def _probe_error(parts: list[Tensor], weights: Tensor, features: Features, input
     inputs; uncovered probes count as twice the largest leaf error)."""
     cells = Cells(directions, weights.unsqueeze(0), *(part.unsqueeze(0) for part in parts[:-1]),
                   *(part.unsqueeze(0) for part in features[:4]), parts[-1].unsqueeze(0))
-    centre_distance = leaf_distance(cells, inputs, inputs)  # [N, 1, M]
+    layout = leaf_layout(cells, (inputs * weights).unsqueeze(0))
+    centre_distance = leaf_distance(cells, None, inputs, layout=layout)  # [N, 1, M]
     total = 0.0
     for radius in PROBE_RADII:
         z_radius = torch.zeros_like(inputs)
