@@ -23,18 +23,23 @@ the velocity's):
              so the hidden attitude matters far less, at the price of a 12-dim regressor
   error      as ``shaped``, with the tracking error ``v - r`` reported instead of ``r`` (the same information,
              without two nearly equal inputs)
+  jerk       the velocity loop runs at the command's rate, as PX4's smooth velocity setpoints: when a command comes
+             it sets the target acceleration ``clip(k (u - v), ±8)`` (``k = 2`` /s), toward which the acceleration
+             demand ``a`` ramps at 10 m/s³ at every 5 ms tick (:data:`JERK`); the attitude loops track ``a``. ``+ a``
+             (the only controller memory, 3 dims)
+  jerk-fast  as ``jerk`` with twice the gain and the jerk (4 /s, 20 m/s³)
 
 Printed per variant: the median tracking error ``|v - r|`` after a step of the offline data (``-`` where the
 velocity loop tracks the command), plans claimed (of 40), sampled states outside a claimed plan's set, plans still
-covered after 1, 2 and 3 steps, the median position radius of the claimed plans' last sets (m), the median set
+covered after 1, 2, 3, 8 and 12 steps, the median position radius of the claimed plans' last sets (m), the median set
 radius after one step: position (m), velocity (m/s) and the added dims, and ``L δ``: the share of the velocity
 leaves' error bound that is the Lipschitz term (the residual's Lipschitz constant times the data's covering
 radius; median over leaves).
 
 ``--method global`` fits the global model instead (``DataDrivenReach.fit(method="global")``).
 
-Usage: ``python benchmarks/bench_rotor_state.py [--steps 2000] [--variants base tilt rates command both shaped error]
-[--method local]``
+Usage: ``python benchmarks/bench_rotor_state.py [--steps 2000] [--variants base tilt rates command both shaped error
+jerk jerk-fast] [--method local]``
 """
 from __future__ import annotations
 
@@ -49,8 +54,10 @@ from envs import _rotor, quadrotor_nav
 from torchrl_brsl.reach import DataDrivenReach, collect_offline_data, env_trajectories
 from torchrl_brsl.sets import Zonotope
 
-EXTRA = {"base": 0, "tilt": 2, "rates": 4, "command": 3, "both": 5, "shaped": 6, "error": 6}
+EXTRA = {"base": 0, "tilt": 2, "rates": 4, "command": 3, "both": 5, "shaped": 6, "error": 6, "jerk": 3,
+         "jerk-fast": 3}
 SHAPED = ("shaped", "error")
+JERK = {"jerk": (2.0, 10.0), "jerk-fast": (4.0, 20.0)}  # velocity gain (/s), jerk (m/s^3)
 HORIZON = 17
 SHAPE_GAIN, SHAPE_ACCELERATION, SHAPE_LAG = 4.0, 4.0, 5.0  # /s, m/s^2, /s: from 5 m/s to rest in about 1.5 s
 
@@ -79,6 +86,34 @@ class ShapedController(_rotor.CascadeController):
             self.command = held
 
 
+class JerkController(_rotor.CascadeController):
+    """The cascade controller behind a jerk-limited acceleration demand (variants ``jerk`` and ``jerk-fast``):
+    ``target`` is set when a command comes, ``demand`` (its memory, started at zero) ramps toward it."""
+
+    def __init__(self, airframe, data, gain: float, jerk: float):
+        self.gain, self.jerk = gain, jerk
+        super().__init__(airframe, data)
+
+    def reset(self) -> None:
+        super().reset()
+        self.target, self.demand = [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]
+
+    def set_command(self, command: list[float]) -> None:
+        limit = _rotor.MAX_ACCELERATION
+        self.command = command
+        self.target = [max(-limit, min(limit, self.gain * (u - v))) for u, v in zip(command, self._data.qvel[:3])]
+
+    def update(self) -> None:
+        step, held = self.jerk * _rotor.TIMESTEP, self.command
+        self.demand = [a + max(-step, min(step, t - a)) for a, t in zip(self.demand, self.target)]
+        # the velocity loop's demand k (c - v) becomes the ramped demand
+        self.command = [v + a / k for v, a, k in zip(self._data.qvel[:3], self.demand, _rotor.VELOCITY_GAIN)]
+        try:
+            super().update()
+        finally:
+            self.command = held
+
+
 def measured_task(variant: str) -> type:
     """The rotor quadrotor task with its state extended by ``variant``'s quantities."""
     base = quadrotor_nav.RotorQuadrotorNav
@@ -96,9 +131,19 @@ def measured_task(variant: str) -> type:
             super()._bind(physics)
             if variant in SHAPED:
                 self._controller = ShapedController(self.airframe, self._data)
+            if variant in JERK:
+                self._controller = JerkController(self.airframe, self._data, *JERK[variant])
+
+        def _apply_action(self, action, physics) -> None:
+            if variant in JERK:
+                self._controller.set_command(action.tolist())
+            else:
+                super()._apply_action(action, physics)
 
         def state(self, physics):
             data = physics.data
+            if variant in JERK:
+                return np.concatenate([data.qpos[:3], data.qvel[:3], self._controller.demand])
             if variant in SHAPED:
                 reference = np.asarray(self._controller.reference or data.qvel[:3])
                 memory = reference if variant == "shaped" else data.qvel[:3] - reference
@@ -134,7 +179,7 @@ def measure(variant: str, steps: int, method: str) -> str:
     initial = Zonotope.from_point(starts)
     sets, claimed = reach.reach_covered(initial, plans)
     outside = int((~sets.contains(visited))[claimed].sum())
-    covered = [int(reach.reach_covered(initial, plans[:, :h])[1].sum()) for h in (1, 2, 3)]
+    covered = [int(reach.reach_covered(initial, plans[:, :h])[1].sum()) for h in (1, 2, 3, 8, 12)]
     radius = sets.generators[:, 0].abs().sum(-1).median(0).values  # [n], after one step
     added = " ".join(f"{float(r):.2f}" for r in radius[6:]) or "-"
     final = sets.generators[:, -1, :3].abs().sum(-1)[claimed]  # position radius of the claimed plans' last sets
@@ -148,7 +193,7 @@ def measure(variant: str, steps: int, method: str) -> str:
         errors = reach.cell_errors[3:6]
         real = torch.isfinite(errors) & (errors > 0)
         share = f"{float((reach.cell_lipschitz[3:6] * reach.cell_delta[3:6] / errors)[real].median()):.2f}"
-    return (f"{variant:<9}{tracking:>9}{int(claimed.sum()):>5}/40{outside:>9}{str(covered):>14}{final:>7}"
+    return (f"{variant:<10}{tracking:>9}{int(claimed.sum()):>5}/40{outside:>9}{str(covered):>24}{final:>7}"
             f"{float(radius[:3].max()):>10.2f}{float(radius[3:6].max()):>10.2f}{share:>8}   {added}")
 
 
@@ -161,8 +206,8 @@ def main() -> None:
     torch.set_num_threads(1)
     print(f"rotor quadrotor, {args.steps} offline steps, {args.method} model, 40 plans of {HORIZON} steps; "
           "radii after one step (median)")
-    print(f"{'variant':<9}{'tracking':>9}{'claimed':>8}{'outside':>9}{'covered 1-3':>14}{'final':>7}{'position':>10}"
-          f"{'velocity':>10}{'L δ':>8}   added dims")
+    print(f"{'variant':<10}{'tracking':>9}{'claimed':>8}{'outside':>9}{'covered 1, 2, 3, 8, 12':>24}{'final':>7}"
+          f"{'position':>10}{'velocity':>10}{'L δ':>8}   added dims")
     for variant in args.variants:
         start = time.perf_counter()
         row = measure(variant, args.steps, args.method)
