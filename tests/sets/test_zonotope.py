@@ -242,6 +242,14 @@ def test_contains_rank_deficient_segment():
     assert not z.contains(torch.tensor([[1.0, 1.01], [3.1, 3.1]], dtype=F64)).any()
 
 
+@pytest.mark.parametrize("n", [2, 4])
+def test_contains_an_empty_batch_is_an_empty_bool_tensor(n):
+    """Both paths (closed form, LP beyond 3-D): a mask that selects no set still gives a mask."""
+    z = Zonotope(torch.zeros(0, 3, n, dtype=F64), torch.eye(n, dtype=F64).expand(0, 3, n, n))
+    inside = z.contains(torch.zeros(0, 3, n, dtype=F64))
+    assert inside.dtype == torch.bool and inside.shape == (0, 3)
+
+
 def test_contains_tolerance_argument():
     z = Zonotope.from_interval(-torch.ones(2, dtype=F64), torch.ones(2, dtype=F64))
     x = torch.tensor([1.0 + 1e-4, 0.0], dtype=F64)

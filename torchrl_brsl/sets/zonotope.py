@@ -241,7 +241,7 @@ class Zonotope:
         flat_x = offset.detach().reshape(rows, self.dim).double().cpu().numpy()
         flat_g = generators.detach().reshape(rows, *generators.shape[-2:]).double().cpu().numpy()
         inside = [gauge_lp(g, x) <= 1 + max(tol, 1e-7) for g, x in zip(flat_g, flat_x)]
-        return torch.tensor(inside, device=points.device).reshape(offset.shape[:-1])
+        return torch.tensor(inside, dtype=torch.bool, device=points.device).reshape(offset.shape[:-1])
 
     def sample(self, num: int, generator: torch.Generator | None = None) -> Tensor:
         """``num`` points ``c + G z`` with ``z`` uniform in the unit cube: ``[num, ..., n]``.
