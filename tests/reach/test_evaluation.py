@@ -1,10 +1,11 @@
-"""Checking fitted sets against the true system: the worst-noise one-step check."""
+"""Checking fitted sets against the true system: the worst-noise one-step check, and the containment test."""
 import types
 
 import pytest
 import torch
 
-from torchrl_brsl.reach import DoubleIntegrator, noiseless_transitions, sample_reach, worst_noise_outside
+from torchrl_brsl.reach import (DoubleIntegrator, noiseless_transitions, points_outside, sample_reach,
+                                worst_noise_outside)
 from torchrl_brsl.sets import Zonotope
 
 from reach_support import shared_fit
@@ -68,3 +69,25 @@ def test_worst_noise_outside_and_noiseless_transitions_reject_bad_input_by_name(
         worst_noise_outside(reach, states[:-1], states, actions)
     with pytest.raises(TypeError, match="`env` must be a task"):
         noiseless_transitions(types.SimpleNamespace(), 10)
+
+
+def test_points_outside_checks_a_dim_of_zero_width_exactly_without_an_lp(monkeypatch):
+    """Sets exact in one of four dims (a rotor robot's idle offset): a point 1e-9 off in that dim, or past the edge
+    of another, is outside; the rest inside. Pairs with the exact dim are segments, for which the closed form does
+    not hold: they are left to the axes, so no LP runs."""
+    import torchrl_brsl.sets.zonotope as zonotope
+
+    def no_lp(*args):
+        raise AssertionError("an LP ran")
+
+    monkeypatch.setattr(zonotope, "gauge_lp", no_lp)
+    gen = torch.Generator().manual_seed(0)
+    generators = torch.randn(5, 4, 6, generator=gen, dtype=torch.float64)
+    generators[:, 3] = 0.0
+    sets = Zonotope(torch.randn(5, 4, generator=gen, dtype=torch.float64), generators)
+    inside = sets.sample(50, generator=gen)  # [50, 5, 4]
+    off_exact, past_edge = inside.clone(), inside.clone()
+    off_exact[..., 3] += 1e-9
+    past_edge[..., 0] = sets.center[..., 0] + 1.001 * generators[:, 0].abs().sum(-1)
+    assert not points_outside(sets, inside).any()
+    assert points_outside(sets, off_exact).all() and points_outside(sets, past_edge).all()

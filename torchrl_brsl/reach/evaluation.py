@@ -226,15 +226,22 @@ def env_trajectories(env, plans: int, horizon: int, action_low: Tensor, action_h
 def points_outside(sets: Zonotope, points: Tensor, directions: int = 64, seed: int = 0) -> Tensor:
     """Whether ``points`` ``[S, ...]`` lie outside ``sets`` (batch ``[...]``): ``[S, ...]`` bool.
 
-    Exact in every 2-D coordinate projection (closed form) and along random directions
-    (support function); a point outside either test is outside the set. A point passing both
-    may still be outside in ``n > 2`` dimensions, so this is a lower bound on violations.
+    Exact in every 2-D coordinate projection (closed form) and along the coordinate axes and random
+    directions (support function); a point outside either test is outside the set. A point passing both
+    may still be outside in ``n > 2`` dimensions, so this is a lower bound on violations. A pair with a dim
+    of zero width in every set is left to the axes, which are exact for it (its projection is a segment or a
+    point along them, for which the closed form does not hold and an LP per point would be slow: a rotor
+    hexarotor's one-step sets are exact on its three offsets, 21 of 36 pairs).
     """
     outside = torch.zeros(points.shape[:-1], dtype=torch.bool, device=points.device)
+    flat = (sets.generators == 0).all(-1).reshape(-1, sets.dim).all(0)  # [n]
     for dims in itertools.combinations(range(sets.dim), 2):
-        outside |= ~sets.project(dims).contains(points[..., list(dims)])
+        if not flat[list(dims)].any():
+            outside |= ~sets.project(dims).contains(points[..., list(dims)])
     gen = torch.Generator(device="cpu").manual_seed(seed)
-    direction = torch.randn(directions, sets.dim, generator=gen, dtype=points.dtype).to(points.device)
+    random = torch.randn(directions, sets.dim, generator=gen, dtype=points.dtype).to(points.device)
+    axes = torch.eye(sets.dim, dtype=points.dtype, device=points.device)
+    direction = torch.cat((axes, -axes, random))
     support = (sets.generators.transpose(-1, -2) @ direction.T).abs().sum(-2)  # [..., D]
     offset = (points - sets.center) @ direction.T  # [S, ..., D]
     return outside | (offset > support * (1 + 1e-9) + 1e-12).any(-1)
