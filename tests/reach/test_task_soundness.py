@@ -77,8 +77,9 @@ WORST_NOISE_QUERIES = 1000
 def sampled(name: str, options: dict, steps: int, horizon: int, n_plans: int, body: bool = False, seed: int = 0,
             model: list | None = None):
     """The task's model fitted from ``steps`` random offline steps (torch seed ``seed``), its sets along ``n_plans``
-    sampled plans from reachable states, and whether the true states lie in them: ``(sets, claimed [P], inside
-    [P, H])``. ``model``: a list the fitted model is appended to."""
+    sampled plans from reachable states, and whether the true states of the claimed plans lie in them: ``(sets,
+    claimed [P], inside [C, H])`` (checked for those alone: exactly, by an LP per state beyond 3-D, which the wide
+    sets of unclaimed plans make slow). ``model``: a list the fitted model is appended to."""
     torch.manual_seed(seed)
     info = envs.safety_info(name, robot=options.get("robot"))
     episode = {"episode_steps": OFFLINE_EPISODE[name]} if name in OFFLINE_EPISODE else {}
@@ -92,7 +93,7 @@ def sampled(name: str, options: dict, steps: int, horizon: int, n_plans: int, bo
     sets, claimed = reach.reach_covered(Zonotope.from_point(x0), plans)  # [plans, H]
     if model is not None:
         model.append(reach)
-    return sets, claimed, sets.contains(visited)
+    return sets, claimed, sets[claimed].contains(visited[claimed])
 
 
 @pytest.mark.parametrize("case", list(CASES))
@@ -104,7 +105,6 @@ def test_sampled_true_trajectories_stay_in_the_reachable_sets(case):
     n_plans = PLANS.get(case, 40)
     model = []
     sets, claimed, inside = sampled(name, options, steps, horizon, n_plans, body=case.endswith(":body"), model=model)
-    inside = inside[claimed]
     assert inside.all(), f"{int((~inside).sum())} of {inside.numel()} true states outside their sets"
     env = envs.make(name, empty=True, seed=13, **options)
     states, actions, successors = noiseless_transitions(env, WORST_NOISE_QUERIES, torch.Generator().manual_seed(0))
@@ -129,8 +129,8 @@ def test_hinge_selection_past_the_noise_variance_fits_the_quadrotors_bend(monkey
     (:func:`~torchrl_brsl.reach.cells.bend_error`) covers that stray too: the teeth need it off."""
     horizon = envs.safety_info("quadrotor_nav").n_brk + 1
     _, claimed, inside = sampled("quadrotor_nav", {}, 500, horizon, 400, seed=2)
-    assert claimed.float().mean() >= 0.9 and inside[claimed].all(), f"{int((~inside[claimed]).sum())} outside"
+    assert claimed.float().mean() >= 0.9 and inside.all(), f"{int((~inside).sum())} outside"
     monkeypatch.setattr(hinges, "STOP_SHARE", 1.0)
     monkeypatch.setattr(cells, "bend_error", lambda low, high, features: low.new_zeros(low.shape[0]))
     _, claimed, inside = sampled("quadrotor_nav", {}, 500, horizon, 400, seed=2)
-    assert not inside[claimed].all(), "the sampling should catch the bend the early stop leaves"
+    assert not inside.all(), "the sampling should catch the bend the early stop leaves"
