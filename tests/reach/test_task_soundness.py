@@ -57,7 +57,8 @@ PLANS = {"quadrotor_nav:capped": 400}
 # cases whose claimed share falls short for a known reason (their claimed sets must still be sound):
 # the rotor robots' attitude is hidden from the state: the same state and action lead to next velocities ~1 m/s apart
 # (benchmarks/bench_rotor.py), so the one-step sets are wide and leave the data's leaves within two steps; measuring
-# the tilt, rates or held command too, or a shaped reference, still claims none (benchmarks/bench_rotor_state.py)
+# the tilt, rates or held command too, a shaped reference or a jerk-limited acceleration demand, still claims none
+# (benchmarks/bench_rotor_state.py)
 _HIDDEN_ATTITUDE = "hidden attitude: the next velocity depends on the tilt, not in the state"
 KNOWN_GAPS = {"quadrotor_nav:rotor": _HIDDEN_ATTITUDE, "hexarotor_wind:rotor": _HIDDEN_ATTITUDE}
 
