@@ -28,6 +28,7 @@ the velocity's):
              demand ``a`` ramps at 10 m/s³ at every 5 ms tick (:data:`JERK`); the attitude loops track ``a``. ``+ a``
              (the only controller memory, 3 dims)
   jerk-fast  as ``jerk`` with twice the gain and the jerk (4 /s, 20 m/s³)
+  jerk-tilt  as ``jerk``, + the tilt as well (the attitude that lags the demand)
 
 Printed per variant: the median tracking error ``|v - r|`` after a step of the offline data (``-`` where the
 velocity loop tracks the command), plans claimed (of 40), sampled states outside a claimed plan's set, plans still
@@ -55,9 +56,9 @@ from torchrl_brsl.reach import DataDrivenReach, collect_offline_data, env_trajec
 from torchrl_brsl.sets import Zonotope
 
 EXTRA = {"base": 0, "tilt": 2, "rates": 4, "command": 3, "both": 5, "shaped": 6, "error": 6, "jerk": 3,
-         "jerk-fast": 3}
+         "jerk-fast": 3, "jerk-tilt": 5}
 SHAPED = ("shaped", "error")
-JERK = {"jerk": (2.0, 10.0), "jerk-fast": (4.0, 20.0)}  # velocity gain (/s), jerk (m/s^3)
+JERK = {"jerk": (2.0, 10.0), "jerk-fast": (4.0, 20.0), "jerk-tilt": (2.0, 10.0)}  # velocity gain (/s), jerk (m/s^3)
 HORIZON = 17
 SHAPE_GAIN, SHAPE_ACCELERATION, SHAPE_LAG = 4.0, 4.0, 5.0  # /s, m/s^2, /s: from 5 m/s to rest in about 1.5 s
 
@@ -142,14 +143,15 @@ def measured_task(variant: str) -> type:
 
         def state(self, physics):
             data = physics.data
+            w, x, y, z = data.qpos[3:7]
+            tilt = [2 * (x * z + w * y), 2 * (y * z - w * x)]  # body z axis, world x and y
             if variant in JERK:
-                return np.concatenate([data.qpos[:3], data.qvel[:3], self._controller.demand])
+                parts = [data.qpos[:3], data.qvel[:3], self._controller.demand]
+                return np.concatenate(parts + ([tilt] if variant == "jerk-tilt" else []))
             if variant in SHAPED:
                 reference = np.asarray(self._controller.reference or data.qvel[:3])
                 memory = reference if variant == "shaped" else data.qvel[:3] - reference
                 return np.concatenate([data.qpos[:3], data.qvel[:3], memory, self._controller.acceleration])
-            w, x, y, z = data.qpos[3:7]
-            tilt = [2 * (x * z + w * y), 2 * (y * z - w * x)]  # body z axis, world x and y
             parts = [data.qpos[:3], data.qvel[:3]]
             if variant in ("command", "both"):
                 parts.append(np.asarray(self._controller.command))

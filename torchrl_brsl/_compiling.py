@@ -8,6 +8,9 @@ import types
 import warnings
 from typing import Callable
 
+import torch
+from torch import Tensor
+
 
 _COPIES = itertools.count(1)
 
@@ -30,6 +33,26 @@ def own_code(function: Callable) -> types.FunctionType:
     code = function.__code__.replace(co_name=f"{function.__code__.co_name}_{next(_COPIES)}")
     return types.FunctionType(code, function.__globals__, function.__name__, function.__defaults__,
                               function.__closure__)
+
+
+def small_matmul(a: Tensor, b: Tensor, transpose_b: bool = False) -> Tensor:
+    """``a @ b`` (``a @ b.mT`` with ``transpose_b``) of small operands, ``[..., i, k]`` and ``[..., k, j]``
+    (``[..., j, k]``), broadcast.
+
+    Inside a compiled graph, a product summed by hand, which inductor fuses into the kernels around it; a
+    matrix product would be a BLAS call with a buffer of its own at every use, and in a traced loop
+    ``b.mT`` of a captured tensor would alias it (which ``while_loop`` refuses).
+
+    Examples:
+        >>> a, b = torch.randn(3, 2, 4), torch.randn(4, 5)
+        >>> torch.allclose(small_matmul(a, b), a @ b)
+        True
+    """
+    if torch.compiler.is_compiling():
+        if transpose_b:
+            return (a.unsqueeze(-2) * b.unsqueeze(-3)).sum(-1)
+        return (a.unsqueeze(-1) * b.unsqueeze(-3)).sum(-2)
+    return a @ (b.mT if transpose_b else b)
 
 
 def warn_fallback(what: str, error: Exception, instead: str = "eagerly") -> None:

@@ -35,6 +35,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from torchrl_brsl._compiling import small_matmul
+
 
 @dataclass(frozen=True)
 class BodyFrame:
@@ -155,14 +157,14 @@ class BodyFrame:
         q0, q_gens, q_error = heading
         rotation = _matrix(q0)  # M(q0) [..., 2, 2]
         along_q = _matrix(h0)  # M(q) h0 = M(h0) q
-        center = (rotation @ h0.unsqueeze(-1)).squeeze(-1)
-        generators = rotation @ h_gens + along_q @ q_gens
+        center = small_matmul(rotation, h0.unsqueeze(-1)).squeeze(-1)
+        generators = small_matmul(rotation, h_gens) + small_matmul(along_q, q_gens)
         error = rotation * h_error.unsqueeze(-2)
         q_radius = q_gens.abs().sum(-1) + q_error
         h_radius = h_gens.abs().sum(-1) + h_error
         second = torch.stack((q_radius[..., 0] * h_radius[..., 0] + q_radius[..., 1] * h_radius[..., 1],
                               q_radius[..., 1] * h_radius[..., 0] + q_radius[..., 0] * h_radius[..., 1]), dim=-1)
-        box = (along_q.abs() @ q_error.unsqueeze(-1)).squeeze(-1) + second
+        box = small_matmul(along_q.abs(), q_error.unsqueeze(-1)).squeeze(-1) + second
         return center, generators, error, box
 
 

@@ -24,7 +24,7 @@ import torch
 from torch import Tensor
 from torch._higher_order_ops.while_loop import while_loop
 
-from torchrl_brsl._compiling import inductor_kwargs, own_code, warn_fallback
+from torchrl_brsl._compiling import inductor_kwargs, own_code, small_matmul, warn_fallback
 from torchrl_brsl.reach.cells import NEAR_LEAVES, leaf_bounds, leaf_distance, leaf_gaps, leaf_layout
 from torchrl_brsl.reach.hinges import product_relaxation, relu_relaxation
 from torchrl_brsl.sets import Zonotope, pad_generators, reduce_girard
@@ -361,7 +361,7 @@ class LocalStep:
         # the exact interval radius per direction [..., F] (a product summed by hand: fused when compiled)
         ranges = (self.projection_free[..., None] * g_free.unsqueeze(-3)).sum(-2).abs().sum(-1)
         phi_radius, hinge_radius, factor_radius = ranges.split(self.sizes, -1)
-        phi, hinge_center, factor_center = (z_raw @ self.projection - self.knots).split(self.sizes, -1)
+        phi, hinge_center, factor_center = (small_matmul(z_raw.unsqueeze(-2), self.projection).squeeze(-2) - self.knots).split(self.sizes, -1)
         slope, offset_h, feature_low, feature_high = relu_relaxation(hinge_center.unflatten(-1, (n, self.n_hinges)),
                                                                      hinge_radius.unflatten(-1, (n, self.n_hinges)))
         factors = (n, self.n_products, 2)
@@ -379,16 +379,17 @@ class LocalStep:
         A, B, offset, theta, theta_p = self.leaf_rows[index + self.row_offset].split(self.widths, dim=-1)
         # the relaxations relu(s) ∈ λ s + μ ± μ and s1 s2 ∈ λ1 s1 + λ2 s2 + κ ± ε fold into the leaf's
         # model
-        along = (torch.einsum("...kh,khd->...kd", theta * slope, self.hinge_directions)
-                 + torch.einsum("...kqj,kqjd->...kd", theta_p.unsqueeze(-1) * factor_slope, self.product_directions))
+        along = (small_matmul((theta * slope).unsqueeze(-2), self.hinge_directions)
+                 + small_matmul((theta_p.unsqueeze(-1) * factor_slope).flatten(-2).unsqueeze(-2),
+                                self.product_directions.flatten(1, 2).contiguous())).squeeze(-2)
         shift = constant - (factor_slope * self.product_knots).sum(-1)
         offset = (offset.squeeze(-1) + (theta * (offset_h - slope * cells.hinge_knots)).sum(-1)
                   + (theta_p * shift).sum(-1))
         errors = errors + (theta.abs() * offset_h).sum(-1) + (theta_p.abs() * product_error).sum(-1)
         A = A.index_add(-1, self.free, along[..., :len(self.inv_scale_free)])
         B = B + along[..., len(self.inv_scale_free):]
-        new_center = (A @ center.unsqueeze(-1) + B @ action.unsqueeze(-1)).squeeze(-1) + offset
-        carried = A @ generators
+        new_center = (small_matmul(A, center.unsqueeze(-1)) + small_matmul(B, action.unsqueeze(-1))).squeeze(-1) + offset
+        carried = small_matmul(A, generators)
         moved = None if tangents is None else self._tangents(center, new_center, A, B, *tangents)
         if self.body_frame is None:
             new = (torch.diag_embed(errors + self.noise_radius),)

@@ -62,9 +62,7 @@ def girard_columns(generators: Tensor, n_generators: int) -> Tensor:
     n, p = generators.shape[-2], generators.shape[-1]
     n_keep = n_generators - n
     score = generators.abs().sum(-2) - generators.abs().amax(-2)
-    order = score.argsort(dim=-1, descending=True)
-    idx = order.unsqueeze(-2).expand(*generators.shape[:-1], p)
-    sorted_gens = generators.gather(-1, idx)
-    kept, boxed = sorted_gens[..., :n_keep], sorted_gens[..., n_keep:]
-    box = torch.diag_embed(boxed.abs().sum(-1))
-    return torch.cat((kept, box), dim=-1)
+    kept = score.topk(n_keep, dim=-1).indices  # [..., n_keep], largest first
+    boxed = torch.ones_like(score).scatter(-1, kept, 0.0)  # [..., p]: 1 for the columns boxed
+    box = torch.diag_embed((generators.abs() * boxed.unsqueeze(-2)).sum(-1))
+    return torch.cat((generators.gather(-1, kept.unsqueeze(-2).expand(*generators.shape[:-1], n_keep)), box), dim=-1)
