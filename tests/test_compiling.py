@@ -4,7 +4,9 @@ import pytest
 import torch
 
 from torchrl_brsl import _compiling
-from torchrl_brsl._compiling import inductor_kwargs, own_code, vector_options
+from torch._higher_order_ops.while_loop import while_loop
+
+from torchrl_brsl._compiling import inductor_kwargs, own_code, small_matmul, vector_options
 
 
 class _Isa:
@@ -71,3 +73,23 @@ def test_copies_of_a_function_do_not_share_automatic_dynamic_shapes():
     for size in (3, 5):
         torch.compile(own_code(double), backend=backend)(torch.ones(size))
     assert symbolic == [False, False]
+
+
+@pytest.mark.parametrize("transpose_b", [False, True])
+def test_small_matmul_compiled_in_a_loop_equals_the_product(transpose_b):
+    """Compiled, the product is summed by hand, also inside a ``while_loop`` body with a captured operand (whose
+    ``.mT`` the loop would refuse as an alias of it); eagerly it is ``a @ b``."""
+    gen = torch.Generator().manual_seed(0)
+    a = torch.randn(3, 4, 2, 5, dtype=torch.float64, generator=gen)
+    b = torch.randn(4, 6, 5, dtype=torch.float64, generator=gen)
+    operand = b if transpose_b else b.mT.contiguous()  # [4, 6, 5] or [4, 5, 6]
+    expected = a @ b.mT  # [3, 4, 2, 6]
+
+    def loop(x):
+        def body(i, x):
+            return i + 1, small_matmul(a, operand, transpose_b=transpose_b) + 0 * x
+        return while_loop(lambda i, x: i < 2, body, (torch.zeros((), dtype=torch.long), x))[1]
+
+    torch.testing.assert_close(small_matmul(a, operand, transpose_b=transpose_b), expected)
+    compiled = torch.compile(loop, backend="aot_eager", fullgraph=True)(torch.zeros_like(expected))
+    torch.testing.assert_close(compiled, expected)
