@@ -1,5 +1,7 @@
 """What the compiled paths share (``torchrl_brsl._compiling``): code objects per owner, inductor's options for small
 tensors."""
+import types
+
 import pytest
 import torch
 
@@ -77,19 +79,20 @@ def test_copies_of_a_function_do_not_share_automatic_dynamic_shapes():
 
 @pytest.mark.parametrize("transpose_b", [False, True])
 def test_small_matmul_compiled_in_a_loop_equals_the_product(transpose_b):
-    """Compiled, the product is summed by hand, also inside a ``while_loop`` body with a captured operand (whose
-    ``.mT`` the loop would refuse as an alias of it); eagerly it is ``a @ b``."""
+    """Compiled, the product is summed by hand, also inside a ``while_loop`` body that uses a captured operand
+    twice (as the step uses a leaf's slopes: there ``b.mT`` and ``b`` would enter the loop as aliased inputs, which
+    it refuses); eagerly it is ``a @ b``."""
     gen = torch.Generator().manual_seed(0)
     a = torch.randn(3, 4, 2, 5, dtype=torch.float64, generator=gen)
     b = torch.randn(4, 6, 5, dtype=torch.float64, generator=gen)
-    operand = b if transpose_b else b.mT.contiguous()  # [4, 6, 5] or [4, 5, 6]
-    expected = a @ b.mT  # [3, 4, 2, 6]
+    holder = types.SimpleNamespace(operand=b if transpose_b else b.mT.contiguous())  # [4, 6, 5] or [4, 5, 6]
+    expected = a @ b.mT * b.sum()  # [3, 4, 2, 6]
 
     def loop(x):
         def body(i, x):
-            return i + 1, small_matmul(a, operand, transpose_b=transpose_b) + 0 * x
+            return i + 1, small_matmul(a, holder.operand, transpose_b=transpose_b) * holder.operand.sum() + 0 * x
         return while_loop(lambda i, x: i < 2, body, (torch.zeros((), dtype=torch.long), x))[1]
 
-    torch.testing.assert_close(small_matmul(a, operand, transpose_b=transpose_b), expected)
+    torch.testing.assert_close(small_matmul(a, holder.operand, transpose_b=transpose_b) * b.sum(), expected)
     compiled = torch.compile(loop, backend="aot_eager", fullgraph=True)(torch.zeros_like(expected))
     torch.testing.assert_close(compiled, expected)
