@@ -40,7 +40,7 @@ radius; median over leaves).
 ``--method global`` fits the global model instead (``DataDrivenReach.fit(method="global")``).
 
 Usage: ``python benchmarks/bench_rotor_state.py [--steps 2000] [--variants base tilt rates command both shaped error
-jerk jerk-fast] [--method local]``
+jerk jerk-fast jerk-tilt] [--method local]``
 """
 from __future__ import annotations
 
