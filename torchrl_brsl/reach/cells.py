@@ -605,7 +605,8 @@ def leaf_bounds(cells: Cells, z_center: Tensor, z_radius: Tensor, phi_radius: Te
     batch = feature_low.shape[:-1]
     center = torch.cat((z_center.unsqueeze(-2).expand(*batch, -1), (feature_low + feature_high) / 2), -1)
     half = torch.cat((z_radius.unsqueeze(-2).expand(*batch, -1), (feature_high - feature_low) / 2), -1)
-    prediction = small_matmul(center.unsqueeze(-2), cells.slopes, transpose_b=True).squeeze(-2) + cells.intercepts  # [..., n, M]
+    prediction = small_matmul(center.unsqueeze(-2), cells.slopes, transpose_b=True).squeeze(-2)  # [..., n, M]
+    prediction = prediction + cells.intercepts
     chosen = prediction.gather(-1, index.unsqueeze(-1))
     slope_gap = cells.slopes - cells.slopes.reshape(n * n_leaves, width)[flat].unsqueeze(-2)  # [..., n, M, d + H]
     model_gap = (prediction - chosen).abs() + (slope_gap.abs() * half.unsqueeze(-2)).sum(-1)  # fused when compiled

@@ -72,7 +72,7 @@ class LocalStep:
                                 cells.product_knots.flatten()))
         self.sizes = (cells.directions.shape[0], n * self.n_hinges, 2 * n * self.n_products)
         self.hinge_directions = cells.hinge_directions / scale  # [n, H, d]
-        self.product_directions = cells.product_directions / scale  # [n, Q, 2, d]
+        self.product_rows = cells.product_directions.flatten(1, 2) / scale  # [n, 2 Q, d], the factors' directions
         self.product_knots = cells.product_knots
         self.layout = leaf_layout(cells, model._weighted_data)
         self.near_leaves = min(NEAR_LEAVES, n_leaves)
@@ -358,10 +358,11 @@ class LocalStep:
         cells, n = self.cells, self.state_dim
         z_raw = torch.cat((center.index_select(-1, self.free), action), dim=-1)  # [..., d]
         g_free = generators.index_select(-2, self.free)  # [..., n_F, p] (actions are exact)
-        # the exact interval radius per direction [..., F] (a product summed by hand: fused when compiled)
-        ranges = (self.projection_free[..., None] * g_free.unsqueeze(-3)).sum(-2).abs().sum(-1)
+        # the exact interval radius per direction [..., F]
+        ranges = small_matmul(self.projection_free, g_free).abs().sum(-1)
         phi_radius, hinge_radius, factor_radius = ranges.split(self.sizes, -1)
-        phi, hinge_center, factor_center = (small_matmul(z_raw.unsqueeze(-2), self.projection).squeeze(-2) - self.knots).split(self.sizes, -1)
+        phi = small_matmul(z_raw.unsqueeze(-2), self.projection).squeeze(-2) - self.knots
+        phi, hinge_center, factor_center = phi.split(self.sizes, -1)
         slope, offset_h, feature_low, feature_high = relu_relaxation(hinge_center.unflatten(-1, (n, self.n_hinges)),
                                                                      hinge_radius.unflatten(-1, (n, self.n_hinges)))
         factors = (n, self.n_products, 2)
@@ -381,14 +382,15 @@ class LocalStep:
         # model
         along = (small_matmul((theta * slope).unsqueeze(-2), self.hinge_directions)
                  + small_matmul((theta_p.unsqueeze(-1) * factor_slope).flatten(-2).unsqueeze(-2),
-                                self.product_directions.flatten(1, 2).contiguous())).squeeze(-2)
+                                self.product_rows)).squeeze(-2)
         shift = constant - (factor_slope * self.product_knots).sum(-1)
         offset = (offset.squeeze(-1) + (theta * (offset_h - slope * cells.hinge_knots)).sum(-1)
                   + (theta_p * shift).sum(-1))
         errors = errors + (theta.abs() * offset_h).sum(-1) + (theta_p.abs() * product_error).sum(-1)
         A = A.index_add(-1, self.free, along[..., :len(self.inv_scale_free)])
         B = B + along[..., len(self.inv_scale_free):]
-        new_center = (small_matmul(A, center.unsqueeze(-1)) + small_matmul(B, action.unsqueeze(-1))).squeeze(-1) + offset
+        new_center = small_matmul(A, center.unsqueeze(-1)) + small_matmul(B, action.unsqueeze(-1))
+        new_center = new_center.squeeze(-1) + offset
         carried = small_matmul(A, generators)
         moved = None if tangents is None else self._tangents(center, new_center, A, B, *tangents)
         if self.body_frame is None:
