@@ -4,10 +4,9 @@ import types
 
 import pytest
 import torch
-
-from torchrl_brsl import _compiling
 from torch._higher_order_ops.while_loop import while_loop
 
+from torchrl_brsl import _compiling
 from torchrl_brsl._compiling import inductor_kwargs, own_code, small_matmul, vector_options
 
 

@@ -59,8 +59,7 @@ def girard_columns(generators: Tensor, n_generators: int) -> Tensor:
     """:func:`reduce_girard`'s reduction without its checks, for ``p > n_generators >= n`` columns of
     finite entries (library code whose inputs hold that by construction, e.g. a traced loop body,
     which may have no side effects such as the checks' switch)."""
-    n, p = generators.shape[-2], generators.shape[-1]
-    n_keep = n_generators - n
+    n_keep = n_generators - generators.shape[-2]
     score = generators.abs().sum(-2) - generators.abs().amax(-2)
     kept = score.topk(n_keep, dim=-1).indices  # [..., n_keep], largest first
     boxed = torch.ones_like(score).scatter(-1, kept, 0.0)  # [..., p]: 1 for the columns boxed
