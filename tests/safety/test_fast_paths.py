@@ -332,3 +332,61 @@ def test_facet_qp_moves_along_a_constraint_the_reference_already_sits_on(reach):
     assert result.plan[0, 0, 0] > 0.5 and result.plan[0, 0, 1] <= 0  # along the wall, not into it
     stuck = FacetQPAdjuster(polish=0)(checker, x0, plan, obstacles, reference=reference)
     assert torch.equal(stuck.plan, reference[:, :N_PLAN])  # the teeth: the unpolished step is scaled to nothing
+
+
+@pytest.mark.parametrize("dims", [2, 3])
+def test_compiled_plan_gauge_equals_the_eager_check(dims):
+    """The closed-form check of plan-dependent sets compiled as one graph (inductor, no graph break) gives the
+    eager check's values, attaining facets and weights, and certifies every pair of sets that carry noise; a set
+    flat in the obstacle space but for its small floor box is among them."""
+    from torchrl_brsl._compiling import inductor_kwargs, own_code
+    from torchrl_brsl.collision import pair_facets, pair_gauge
+    from torchrl_brsl.safety.plan_check import _plan_gauge, _projected_generators
+
+    gen = torch.Generator().manual_seed(dims)
+    n, index, width = 5, slice(1, 1 + dims), 4 * dims
+    generators = torch.randn(3, 7, n, 12, generator=gen, dtype=D) * 0.1
+    generators[0, 0, 1:1 + dims] = 0.0
+    generators[0, 0, 1, 0] = 50.0  # one long generator: the pair's own minors hardly clear the floor
+    centers = torch.randn(3, 7, n, generator=gen, dtype=D)
+    obstacle_centers = torch.randn(3, 4, dims, generator=gen, dtype=D)
+    obstacle_generators = torch.randn(3, 4, dims, 5, generator=gen, dtype=D) * 0.3
+    compiled = torch.compile(own_code(_plan_gauge), **inductor_kwargs({}, cpp_wrapper=True))
+    breaks = counters["graph_break"].copy()
+    with torch.no_grad():
+        *fused, full = compiled(generators, centers, obstacle_centers, obstacle_generators, index, width)
+    assert counters["graph_break"] == breaks and bool(full.all())
+    facets = pair_facets(_projected_generators(generators, index, width).unsqueeze(-3), obstacle_generators.unsqueeze(-4))
+    offsets = obstacle_centers.unsqueeze(-3) - centers[..., index].unsqueeze(-2)
+    for got, want in zip(fused, pair_gauge(offsets, facets)):
+        torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.filterwarnings("error::RuntimeWarning")  # no fallback to eager
+def test_compiled_checker_checks_a_local_models_plans_as_the_eager_one():
+    """A compiled local model's checker runs its closed-form checks as one graph, compiled by ``prepare_checks``
+    before the first check: the same verdicts, values and gauges as the eager checker's, at one env (padded to
+    two) and at three; with gradients wanted it checks eagerly, differentiable."""
+    bicycle, eager = bicycle_checker(policy=False)
+    reach = copy.deepcopy(eager.reach).compile_steps(backend="aot_eager")
+    checker = PlanChecker(reach, eager.failsafe, eager.horizon, stop_dims=(3,), stop_slack=0.1,
+                          action_low=bicycle.action_low, action_high=bicycle.action_high)
+    gen, frames = torch.Generator().manual_seed(3), counters["frames"]["ok"]
+    checker.prepare_checks(obstacles_of(*scene(2, 6)[2:]))
+    assert counters["frames"]["ok"] > frames  # compiled now, for 6 obstacles of 3 generators
+    frames = counters["frames"]["ok"]
+    for n_envs in (1, 3):
+        x0, plan = bicycle.sample_states(n_envs, gen) * 0.3, bicycle.sample_actions(n_envs, N_PLAN, generator=gen)
+        obstacles = obstacles_of(*scene(n_envs, 6, seed=n_envs)[2:])
+        rollout = eager.rollout_sets(x0, plan)
+        got, got_gauge = checker.evaluate_with_gauge(x0, plan, obstacles, rollout=rollout)
+        want, want_gauge = eager.evaluate_with_gauge(x0, plan, obstacles, rollout=rollout)
+        assert bool(((want.values > 0) & torch.isfinite(want.values)).any())
+        for new, old in zip((*got, *got_gauge), (*want, *want_gauge)):
+            torch.testing.assert_close(new, old, rtol=1e-12, atol=1e-12)
+    assert counters["frames"]["ok"] == frames  # nothing compiled at a check
+    centers = rollout[1].center.clone().requires_grad_(True)
+    values = checker.evaluate_with_gauge(x0, plan, obstacles, rollout=(rollout[0], Zonotope(
+        centers, rollout[1].generators), rollout[2]))[0].values
+    torch.nan_to_num(values, posinf=0.0).sum().backward()
+    assert centers.grad is not None and bool(centers.grad.abs().sum() > 0)

@@ -1,9 +1,11 @@
+import copy
 import functools
 
 import pytest
 import torch
 from tensordict import TensorDict
 from torchrl.envs import ParallelEnv, SerialEnv, TransformedEnv
+from torch._dynamo.utils import counters
 from torchrl.envs.utils import check_env_specs
 
 import envs
@@ -192,3 +194,19 @@ def test_holding_beyond_every_verified_plan_is_flagged():
     blocked = env.step(td)["next"]
     assert blocked["brsl", "failsafe"].item() and blocked["brsl", "unverified_hold"].item()
     assert torch.equal(blocked["safe_action"], torch.zeros(2))
+
+
+@pytest.mark.filterwarnings("ignore:the stop check certifies nothing")  # 500 steps of the capped servos: wide sets
+def test_a_compiled_local_model_compiles_its_checks_when_appended_to_the_env():
+    """The closed-form check of a compiled local model is compiled for the env's obstacle shapes when the layer is
+    appended to the env (``PlanChecker.prepare_checks``), not at the first control step."""
+    info = envs.safety_info(TASK)
+    reach = copy.deepcopy(fitted_reach(TASK, method="local")).compile_steps(backend="aot_eager")
+    layer = BRSLSafetyLayer(reach, Failsafe(info.braking_action, info.n_brk), info.n_plan, stop_dims=info.velocity_dims,
+                            action_low=info.action_low, action_high=info.action_high)
+    frames = counters["frames"]["ok"]
+    env = TransformedEnv(envs.make(TASK, seed=0), layer)
+    assert counters["frames"]["ok"] > frames
+    frames = counters["frames"]["ok"]
+    td = env.rollout(3)
+    assert counters["frames"]["ok"] == frames and not td["next", "collision"].any()

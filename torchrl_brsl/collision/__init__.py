@@ -7,7 +7,7 @@ facet data of fixed generators for the per-step hot path of the safety layer; :f
 """
 from torchrl_brsl.collision.api import BACKENDS, LP_TOL, check_collision, clearance, collision_value, intersects
 from torchrl_brsl.collision.closed_form import (FacetTable, PairFacets, ZonotopeCollisionChecker, facet_table,
-                                                is_full_dimensional, pair_facets, pair_gauge)
+                                                is_full_dimensional, pair_facets, pair_gauge, split_pair_facets)
 from torchrl_brsl.collision.lp import SOLVER_ARGS, solve_distance, solve_gauge
 from torchrl_brsl.collision.result import CollisionResult, CollisionStatus
 
@@ -30,4 +30,5 @@ __all__ = [
     "pair_gauge",
     "solve_distance",
     "solve_gauge",
+    "split_pair_facets",
 ]

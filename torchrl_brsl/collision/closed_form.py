@@ -25,6 +25,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from torchrl_brsl._compiling import small_matmul
 from torchrl_brsl.collision.result import CollisionResult, CollisionStatus
 from torchrl_brsl.sets._checks import check_same_dtype_device, check_tensor
 from torchrl_brsl.sets.facets import _pairs, facet_normals, facet_supports
@@ -158,8 +159,11 @@ def _planar_pair_facets(set_generators: Tensor, obstacle_generators: Tensor) -> 
     """
     g1, g2 = set_generators, obstacle_generators
     h1, h2 = facet_normals(g1), facet_normals(g2)
-    own1, own2 = h1 @ g1, h2 @ g2  # [S1, p1, p1], [S2, p2, p2]
-    cross = torch.einsum("...in,...nj->...ij", h1, g2).abs_()  # [..., p1, p2]; einsum: one product per owner
+    own1, own2 = small_matmul(h1, g1), small_matmul(h2, g2)  # [S1, p1, p1], [S2, p2, p2]
+    if torch.compiler.is_compiling():  # summed by hand: fused into the kernels around it, no BLAS call per check
+        cross = small_matmul(h1, g2).abs()
+    else:  # einsum: one product per owner
+        cross = torch.einsum("...in,...nj->...ij", h1, g2).abs_()  # [..., p1, p2]
     supports = (own1.abs().sum(-1) + cross.sum(-1), own2.abs().sum(-1) + cross.sum(-2))
     floor = 16 * torch.finfo(g1.dtype).eps * _squared_norm(g1, g2).square()  # tr(G G^T) >= lambda_max
     full = _full_pairs((_squared_norm(own1) + _squared_norm(own2)) / 2, (cross,), floor)
@@ -216,9 +220,11 @@ def _full_pairs(own: Tensor, mixed: tuple[Tensor, ...], floor: Tensor) -> Tensor
     squared minors of each side's own generators, computed per set and per obstacle, ``mixed`` the pairs' mixed
     products). The mixed terms only add, so where ``own`` alone clears the floor for every pair (a set that is
     full-dimensional on its own, as the sets with noise are) the mixed products, the pairs' largest tensors, are
-    not summed: the same answer without a pass over them."""
+    not summed: the same answer without a pass over them. Compiled (a graph cannot branch on values), ``own > floor``
+    alone: it may decline a pair the mixed terms would clear, which the caller then checks eagerly
+    (:meth:`~torchrl_brsl.safety.PlanChecker.evaluate_with_gauge`)."""
     full = own > floor
-    if bool(full.all()):
+    if torch.compiler.is_compiling() or bool(full.all()):
         return full
     for matrix in mixed:
         own = own + _squared_norm(matrix)
@@ -264,7 +270,7 @@ def pair_facets(set_generators: Tensor, obstacle_generators: Tensor, widen: bool
     g1, g2 = set_generators, obstacle_generators
     n = g1.shape[-2]
     if n in _PAIR_FACETS:
-        split = _PAIR_FACETS[n](g1, g2)
+        split = split_pair_facets(g1, g2)
         if bool(split.full.all()):
             return split
     batch = torch.broadcast_shapes(g1.shape[:-2], g2.shape[:-2])
@@ -272,6 +278,17 @@ def pair_facets(set_generators: Tensor, obstacle_generators: Tensor, widen: bool
     normals = facet_normals(generators)
     full = torch.ones(batch, dtype=torch.bool, device=g1.device)
     return PairFacets((normals,), (facet_supports(normals, generators),), full)
+
+
+def split_pair_facets(set_generators: Tensor, obstacle_generators: Tensor) -> PairFacets:
+    """:func:`pair_facets` by owner in 2-D and 3-D, without its fallback: valid for the pairs its ``full`` marks
+    (no branch on values, so it traces into one compiled graph).
+
+    Args:
+        set_generators: ``[..., n, p1]``, ``n`` in {2, 3}.
+        obstacle_generators: ``[..., n, p2]``.
+    """
+    return _PAIR_FACETS[set_generators.shape[-2]](set_generators, obstacle_generators)
 
 
 def widened_pairs(g1: Tensor, g2: Tensor, batch: torch.Size, widen: bool) -> Tensor:
@@ -305,6 +322,8 @@ def pair_gauge(offsets: Tensor, facets: PairFacets) -> tuple[Tensor, Tensor, Ten
             g1, g2 = facets.crossed
             turned = torch.linalg.cross(*torch.broadcast_tensors(g2.mT, offsets.unsqueeze(-2)))  # [..., p2, 3]
             products = torch.einsum("...ni,...jn->...ij", g1, turned).flatten(-2)
+        elif torch.compiler.is_compiling():  # summed by hand, as in :func:`_planar_pair_facets`
+            products = small_matmul(normals, offsets.unsqueeze(-1)).squeeze(-1)
         else:
             products = torch.einsum("...fn,...n->...f", normals, offsets)
         valid = supports > 0
@@ -521,5 +540,6 @@ __all__ = [
     "pair_facets",
     "pair_gauge",
     "rows_at",
+    "split_pair_facets",
     "widened_pairs",
 ]

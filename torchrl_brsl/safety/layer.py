@@ -332,6 +332,19 @@ class BRSLSafetyLayer(Transform):
             reference = f"K={center.shape[-2]} obstacles, as `{_name(keys[0])}` {tuple(center.shape)}"
             _check_structure(keys[1], generators, batch, (center.shape[-2], d, None), reference, dtype="any")
             _check_structure(keys[2], mask, batch, (center.shape[-2],), reference, dtype="any")
+            polytopes = _join(self.obstacles_key, "constraint_matrix") in observations.keys(True)
+            if not polytopes:  # polytopes are checked by the LP: nothing to compile
+                first = (0,) * len(batch)
+                self._prepare_checks(Obstacles(center[first][None], generators[first][None], mask[first][None].bool()))
+
+    def _prepare_checks(self, obstacles: Obstacles) -> None:
+        """Compile a compiled local model's checks for the env's obstacle shapes now (:meth:`PlanChecker.prepare_checks`),
+        not at the first step."""
+        if not any(reach is not None and reach.plan_dependent and reach.compile_options is not None
+                   for reach in (self.reach, self.local_reach)):
+            return
+        for checker in filter(None, (self.checker, self.local_checker)):
+            checker.prepare_checks(obstacles)
 
     # ----------------------------------------------------------------- specs
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
