@@ -356,7 +356,8 @@ def test_compiled_plan_gauge_equals_the_eager_check(dims):
     with torch.no_grad():
         *fused, full = compiled(generators, centers, obstacle_centers, obstacle_generators, index, width)
     assert counters["graph_break"] == breaks and bool(full.all())
-    facets = pair_facets(_projected_generators(generators, index, width).unsqueeze(-3), obstacle_generators.unsqueeze(-4))
+    projected = _projected_generators(generators, index, width).unsqueeze(-3)
+    facets = pair_facets(projected, obstacle_generators.unsqueeze(-4))
     offsets = obstacle_centers.unsqueeze(-3) - centers[..., index].unsqueeze(-2)
     for got, want in zip(fused, pair_gauge(offsets, facets)):
         torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)

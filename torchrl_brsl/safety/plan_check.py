@@ -394,10 +394,12 @@ class PlanChecker:
         result = self._compiled(function, (batch,), *args, fused=True)
         return function(batch, *args) if result is None else result
 
-    def _compiled(self, function: Callable, batched: tuple[Tensor, ...], *args, **kwargs) -> tuple[Tensor, ...] | None:
-        """``function(*batched, *args, **kwargs)`` compiled with the model's options, without gradients (one graph,
-        whatever the caller's grad mode); ``None`` where compiling failed (a warning says why, and it is not tried
-        again). The tensors ``batched`` ``[B, ...]`` (``B >= 1``) are padded to at least 2 rows and marked dynamic
+    def _compiled(self, function: Callable, batched: tuple[Tensor, ...], *args, cpp_wrapper: bool = False,
+                  **kwargs) -> tuple[Tensor, ...] | None:
+        """``function(*batched, *args, **kwargs)`` compiled with the model's options (and inductor's C++ wrapper with
+        ``cpp_wrapper``: faster calls of a graph of many small kernels), without gradients (one graph, whatever the
+        caller's grad mode); ``None`` where compiling failed (a warning says why, and it is not tried again). The
+        tensors ``batched`` ``[B, ...]`` (``B >= 1``) are padded to at least 2 rows and marked dynamic
         (the compiler specialises sizes 0 and 1), so that every batch size shares the graph; the results' leading
         dims are ``B``. The function is compiled from its own copy of the code, kept in the memo the checker's
         subsets share, so its graphs and the compiler's limit on recompilations are this checker's."""
@@ -406,7 +408,8 @@ class PlanChecker:
         options = self.reach.compile_options
         try:
             compiled = self.memo(("compiled", function, repr(sorted(options.items()))),
-                                 lambda: torch.compile(own_code(function), **inductor_kwargs(options, cpp_wrapper=True)))
+                                 lambda: torch.compile(own_code(function),
+                                                       **inductor_kwargs(options, cpp_wrapper=cpp_wrapper)))
             count, padded = batched[0].shape[0], []
             for tensor in batched:
                 tensor = tensor.expand(2, *tensor.shape[1:]) if count < 2 else tensor
@@ -578,8 +581,8 @@ class PlanChecker:
 
     def _plan_values(self, sets: Zonotope, positions: Tensor, obstacles: Obstacles,
                      detail: bool) -> tuple[Tensor, Gauge | None]:
-        """``v*`` ``[B, T, K]`` of plan-dependent ``sets`` ``[B, T]`` (their centres' ``positions`` ``[B, T, d]``) by the
-        closed form, with the :class:`Gauge` when ``detail``.
+        """``v*`` ``[B, T, K]`` of plan-dependent ``sets`` ``[B, T]`` (their centres' ``positions`` ``[B, T, d]``) by
+        the closed form, with the :class:`Gauge` when ``detail``.
 
         Where the model's steps are compiled and no centre needs gradients, the whole check (the sets' projections,
         their facets against the obstacles' and the gauges) runs as one compiled graph (:func:`_plan_gauge`; one
@@ -589,7 +592,7 @@ class PlanChecker:
         values = None
         if self.reach.compile_options is not None and not (torch.is_grad_enabled() and positions.requires_grad):
             fused = self._compiled(_plan_gauge, (sets.generators, sets.center, obstacles.center, obstacles.generators),
-                                   self._position_index, self.set_width)
+                                   self._position_index, self.set_width, cpp_wrapper=True)
             if fused is not None and bool(fused[-1].all()):
                 values, picked, weights, _ = fused
         if values is None:
@@ -775,4 +778,3 @@ def _take(x: Tensor, index: slice | list[int]) -> Tensor:
     if isinstance(index, slice):
         return x.narrow(-1, index.start, index.stop - index.start)
     return x[..., index]
-
