@@ -32,9 +32,10 @@ demo: $(STAMP)
 demo-reach: $(STAMP)
 	$(RUN) -m recipes.reach_demo
 
-# one worker per core (tests are grouped by file, which keeps a module's fixtures on one worker)
+# one worker per core (tests are grouped by file, which keeps a module's fixtures on one worker); the slowest
+# tests are listed at the end, where the suite's time goes
 test: $(STAMP)
-	$(PY) -m pytest -q -n auto --dist loadfile -m "not docs"
+	$(PY) -m pytest -q -n auto --dist loadfile -m "not docs" --durations=15
 
 # the site in docs/_build/html: Sphinx with warnings as errors, every tutorial executed
 # (the build is the test tests/docs/test_docs_build.py)
