@@ -83,3 +83,13 @@ def test_after_a_step_that_adjusted_every_env_the_references_ride_along_with_the
         torch.testing.assert_close(got, want, rtol=0, atol=1e-9)
     for name, value in alone.diagnostics.items():
         torch.testing.assert_close(together.diagnostics[name], value, rtol=0, atol=1e-9)
+    x0[1, 2], proposal[1] = 0.0, 0.0  # paired again, and env 1 needs no adjustment: the others' parts are taken
+    some = decide(x0, proposal, safe_plan, steps, obstacles)
+    assert paired == [1, 1] and some.diagnostics["intervened"].tolist() == [True, False, True]
+    decide._pair = False
+    unpaired = decide(x0, proposal, safe_plan, steps, obstacles)
+    assert paired == [1, 1]
+    for got, want in zip(some[:3], unpaired[:3]):
+        torch.testing.assert_close(got, want, rtol=0, atol=1e-9)
+    for name, value in unpaired.diagnostics.items():
+        torch.testing.assert_close(some.diagnostics[name], value, rtol=0, atol=1e-9)

@@ -251,7 +251,7 @@ class FacetQPAdjuster:
                  start: float | None = None, reference: Tensor | None = None,
                  reference_rollout: tuple | None = None) -> Adjustment:
         """Adjust ``plan`` ``[B, P, m]`` from ``reference`` ``[B, >= P, m]``; ``reference_rollout``: the
-        reference's rollout from :meth:`evaluate_paired`, where it made one."""
+        reference's rollout and check from :meth:`evaluate_paired`, where it made them."""
         if reference is None:
             raise ValueError("FacetQPAdjuster needs the `reference` plan (the previous safe plan)")
         if checker.uses_lp(obstacles):  # no facets to lock: projected gradient through the LP
@@ -262,22 +262,27 @@ class FacetQPAdjuster:
 
     def evaluate_paired(self, checker: PlanChecker, x0: Tensor, plan: Tensor, reference: Tensor,
                         obstacles: Obstacles) -> tuple[PlanEvaluation, tuple | None]:
-        """:meth:`PlanChecker.evaluate` of ``plan`` ``[B, P, m]``, and the rollout this adjuster starts from on a
-        local model (the sets of ``reference[:, :P]`` and their centres' Jacobian, :func:`_leaf_rollout`) from the same
-        batch, for ``reference_rollout``; ``None`` where it would not use one.
+        """:meth:`PlanChecker.evaluate` of ``plan`` ``[B, P, m]``, and what this adjuster starts from on a local model,
+        from the same batch, for ``reference_rollout``: the sets of ``reference[:, :P]`` and their centres' Jacobian
+        (:func:`_leaf_rollout`), the reference's evaluation and its :class:`Gauge`; ``None`` where it would not use
+        them.
 
         :class:`~torchrl_brsl.safety.SafetyDecision` calls this where the last step adjusted every env. The compiled
         plan loop pads one plan to two, so the reference rides along, its tangents costing 0.3 ms on the Turtlebot's
-        16-step plans; a rollout of its own would cost 2.1 ms.
+        16-step plans; a rollout of its own would cost 2.1 ms. Both are checked in one call as well.
         """
         if not checker.plan_dependent or checker.uses_lp(obstacles):
             return checker.evaluate(x0, plan, obstacles), None
         n_envs = x0.shape[0]
         reference = reference[:, :plan.shape[1]].to(plan)
-        actions, sets, covered, jacobian = _leaf_rollout(checker, x0.repeat(2, 1), torch.cat((plan, reference)))
-        proposal = (actions[:n_envs], sets[:n_envs], covered[:n_envs])
-        evaluation, _ = checker.evaluate_with_gauge(x0, plan, obstacles, detail=False, rollout=proposal)
-        return evaluation, (actions[n_envs:], sets[n_envs:], covered[n_envs:], jacobian[n_envs:])
+        starts, plans = x0.repeat(2, 1), torch.cat((plan, reference))
+        actions, sets, covered, jacobian = _leaf_rollout(checker, starts, plans)
+        evaluation, gauge = checker.evaluate_with_gauge(starts, plans, obstacles.expand(2, n_envs).reshape(2 * n_envs),
+                                                        rollout=(actions, sets, covered))
+        proposal, reference_check = (PlanEvaluation(*(t[part] for t in evaluation))
+                                     for part in (slice(n_envs), slice(n_envs, None)))
+        return proposal, (actions[n_envs:], sets[n_envs:], covered[n_envs:], jacobian[n_envs:], reference_check,
+                          Gauge(*(t[n_envs:] for t in gauge)))
 
     def _adjust(self, checker: PlanChecker, x0: Tensor, plan: Tensor, obstacles: Obstacles,
                 reference: Tensor, reference_rollout: tuple | None) -> Adjustment:
@@ -287,9 +292,12 @@ class FacetQPAdjuster:
             reference = reference.to(plan)
         low, high = checker.action_low, checker.action_high
         rollout = jacobian = None
-        if checker.plan_dependent:  # a local model: one rollout gives the reference's sets and their Jacobian
-            *rollout, jacobian = reference_rollout or _leaf_rollout(checker, x0, reference)
-        ref_eval, gauge = checker.evaluate_with_gauge(x0, reference, obstacles, rollout=rollout)
+        if reference_rollout is not None:  # from :meth:`evaluate_paired`: the reference's sets, Jacobian and check
+            *rollout, jacobian, ref_eval, gauge = reference_rollout
+        else:
+            if checker.plan_dependent:  # a local model: one rollout gives the reference's sets and their Jacobian
+                *rollout, jacobian = _leaf_rollout(checker, x0, reference)
+            ref_eval, gauge = checker.evaluate_with_gauge(x0, reference, obstacles, rollout=rollout)
         affine = checker.affine_for(x0, reference)  # None for a local model
         if affine is None and _feedback_linearisable(checker, x0, reference):  # braking policy: linearised tail
             jacobian = _feedback_jacobian(checker, ref_eval.centers, horizon)  # [B, T, n, N]

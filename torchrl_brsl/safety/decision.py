@@ -265,8 +265,11 @@ def _for_envs(checker: PlanChecker, selected: Tensor, obstacles: Obstacles) -> t
 
 
 def _take(value, idx: Tensor | None):
-    """``value[idx]`` (a tensor, :class:`Obstacles` or :class:`Zonotope`), or ``value`` itself for every env."""
-    return value if idx is None else value[idx]
+    """``value[idx]`` (a tensor, :class:`Obstacles`, :class:`Zonotope` or a named tuple of per-env tensors), or ``value``
+    itself for every env."""
+    if idx is None:
+        return value
+    return type(value)(*(field[idx] for field in value)) if isinstance(value, tuple) else value[idx]
 
 
 def _put(target: Tensor, idx: Tensor | None, value: Tensor) -> Tensor:
