@@ -380,12 +380,9 @@ class PlanChecker:
 
         A loop over the braking tail costs a few operations per step eagerly; compiled, it is one
         graph (one per value of the non-tensor arguments, e.g. the tail's length), whose call has a
-        fixed cost of its own (guards, buffers) that shorter loops do not pay back. ``batch``
-        ``[B, ...]`` is padded to at least 2 rows and marked dynamic (the compiler specialises sizes
-        0 and 1), so every batch size shares the graph; the results' leading dims are ``B``. The
-        function is compiled from its own copy of the code, kept in the memo the checker's subsets
-        share, so its graphs and the compiler's limit on recompilations are this checker's. A
-        compilation that fails warns and runs eagerly from then on.
+        fixed cost of its own (guards, buffers) that shorter loops do not pay back. Every batch size
+        ``[B, ...]`` of ``batch`` shares the graph (:meth:`_compiled`). A compilation that fails warns
+        and runs eagerly from then on.
         """
         differentiable = torch.is_grad_enabled() and any(
             isinstance(t, Tensor) and t.requires_grad for t in (batch, *args))
