@@ -251,7 +251,7 @@ class FacetQPAdjuster:
                  start: float | None = None, reference: Tensor | None = None,
                  reference_rollout: tuple | None = None) -> Adjustment:
         """Adjust ``plan`` ``[B, P, m]`` from ``reference`` ``[B, >= P, m]``; ``reference_rollout``: the
-        reference's rollout and check from :meth:`evaluate_paired`, where it made them."""
+        reference's Jacobian and check from :meth:`evaluate_paired`, where it made them."""
         if reference is None:
             raise ValueError("FacetQPAdjuster needs the `reference` plan (the previous safe plan)")
         if checker.uses_lp(obstacles):  # no facets to lock: projected gradient through the LP
@@ -263,9 +263,8 @@ class FacetQPAdjuster:
     def evaluate_paired(self, checker: PlanChecker, x0: Tensor, plan: Tensor, reference: Tensor,
                         obstacles: Obstacles) -> tuple[PlanEvaluation, tuple | None]:
         """:meth:`PlanChecker.evaluate` of ``plan`` ``[B, P, m]``, and what this adjuster starts from on a local model,
-        from the same batch, for ``reference_rollout``: the sets of ``reference[:, :P]`` and their centres' Jacobian
-        (:func:`_leaf_rollout`), the reference's evaluation and its :class:`Gauge`; ``None`` where it would not use
-        them.
+        from the same batch, for ``reference_rollout``: the centres' Jacobian of ``reference[:, :P]`` along its sets
+        (:func:`_leaf_rollout`), its evaluation and its :class:`Gauge`; ``None`` where it would not use them.
 
         :class:`~torchrl_brsl.safety.SafetyDecision` calls this where the last step adjusted every env. The compiled
         plan loop pads one plan to two, so the reference rides along, its tangents costing 0.3 ms on the Turtlebot's
@@ -281,8 +280,7 @@ class FacetQPAdjuster:
                                                         rollout=(actions, sets, covered))
         proposal, reference_check = (PlanEvaluation(*(t[part] for t in evaluation))
                                      for part in (slice(n_envs), slice(n_envs, None)))
-        return proposal, (actions[n_envs:], sets[n_envs:], covered[n_envs:], jacobian[n_envs:], reference_check,
-                          Gauge(*(t[n_envs:] for t in gauge)))
+        return proposal, (jacobian[n_envs:], reference_check, Gauge(*(t[n_envs:] for t in gauge)))
 
     def _adjust(self, checker: PlanChecker, x0: Tensor, plan: Tensor, obstacles: Obstacles,
                 reference: Tensor, reference_rollout: tuple | None) -> Adjustment:
@@ -291,10 +289,10 @@ class FacetQPAdjuster:
         if reference.dtype != plan.dtype or reference.device != plan.device:
             reference = reference.to(plan)
         low, high = checker.action_low, checker.action_high
-        rollout = jacobian = None
-        if reference_rollout is not None:  # from :meth:`evaluate_paired`: the reference's sets, Jacobian and check
-            *rollout, jacobian, ref_eval, gauge = reference_rollout
+        if reference_rollout is not None:  # from :meth:`evaluate_paired`: the reference's Jacobian and check
+            jacobian, ref_eval, gauge = reference_rollout
         else:
+            rollout = jacobian = None
             if checker.plan_dependent:  # a local model: one rollout gives the reference's sets and their Jacobian
                 *rollout, jacobian = _leaf_rollout(checker, x0, reference)
             ref_eval, gauge = checker.evaluate_with_gauge(x0, reference, obstacles, rollout=rollout)
