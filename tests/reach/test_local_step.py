@@ -51,7 +51,7 @@ def _step_of(model):
 def test_compiled_steps_give_the_eager_sets_and_the_sampling_has_teeth(bicycle):
     system, model = bicycle
     x0, plans, _ = random_plans(system, n_plans=6, horizon=12)
-    batches = (1, 6, 3)  # batch 1 is padded to 2; later sizes reuse the symbolic graph
+    batches = (1, 6, 3)  # batch 1 is a graph of its own; later sizes reuse the symbolic graph
     eager = [_sets(model.compile_steps(False), x0[:b], plans[:b]) for b in batches]
     model.compile_steps(backend="aot_eager")  # compiles the checking and linearisation graphs (warm-up)
     step, compiled_frames = _step_of(model), counters["frames"]["ok"]

@@ -439,7 +439,7 @@ class DataDrivenReach(nn.Module):
         sound bounds of their inputs). A plan's sets without
         gradients (checking and both adjusters' linearisation, with a braking policy's tail too) run as
         one compiled loop, 7-9x faster than eager at batch 1; single steps (gradients) 2-5x
-        (``benchmarks/bench_compiled_step.py``). The warm-up's four graphs take minutes, in every
+        (``benchmarks/bench_compiled_step.py``). The warm-up's five graphs take minutes, in every
         process: on one CPU core the bicycle's body-frame model took 193 s with an empty on-disk cache
         and 90 s with a full one. Inductor (torch 2.13) does not cache a graph that holds a
         ``while_loop``, so each process traces the plan's loops on symbolic batch sizes and generates
@@ -485,6 +485,7 @@ class DataDrivenReach(nn.Module):
                 plan = action.unsqueeze(-2).expand(-1, 2, -1)
                 plan_tangents = tangents[1].unsqueeze(-3).expand(-1, 2, -1, -1)
                 self._local_step().plan_sets(center, generators, plan)
+                self._local_step().plan_sets(center[:1], generators[:1], plan[:1])  # one plan: a graph of its own
                 self._local_step().plan_sets(center, generators, plan, (tangents[0], plan_tangents))
         return self
 

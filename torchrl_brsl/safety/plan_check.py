@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import copy
+import itertools
 import warnings
 from typing import Any, Callable, NamedTuple, Sequence
 
@@ -343,33 +344,34 @@ class PlanChecker:
             bound.to(device=device, dtype=self.action_dtype) for bound in (self.action_low, self.action_high)))
 
     def _warm_up_tails(self) -> None:
-        """Compile the braking policy's tail now, not at a control step: the local model's in the plan's loop, the
-        global model's for the tails the layer checks (braking from the state, a plan of :attr:`plan_steps` steps;
-        each length is a graph of its own)."""
+        """Compile the braking policy's tail now, not at a control step: the local model's in the plan's loop (one
+        plan and several are graphs of their own), the global model's for the tails the layer checks (braking from
+        the state, a plan of :attr:`plan_steps` steps; each length is a graph of its own)."""
         rest = self.action_low.new_zeros(1, self.reach.state_dim)
         lengths = [1] if self.plan_dependent else sorted(n for n in {1, self.plan_steps} if 1 <= n < self.horizon)
         rollout = self.rollout_sets if self.plan_dependent else self.rollout
         with torch.no_grad():
-            for length in lengths:
-                rollout(rest, self.hold(rest).view(1, 1, -1).expand(1, length, -1))
+            for length, plans in itertools.product(lengths, (1, 2) if self.plan_dependent else (1,)):
+                rollout(rest.expand(plans, -1), self.hold(rest).expand(plans, length, -1))
 
     def prepare_checks(self, obstacles: Obstacles) -> None:
         """Compile the closed-form check of a compiled local model's sets (:meth:`evaluate_with_gauge`) for obstacles of
         the shapes of ``obstacles`` ``[B, K, d, ...]`` (their values unused) now, not at the first control step: each
-        count of obstacles and of their generators is a graph of its own, 10-15 s to compile on a 2-core CPU with an
-        empty cache. :class:`~torchrl_brsl.safety.BRSLSafetyLayer` calls it with its env's obstacle specs. Otherwise
-        (eager or global model, obstacles checked by the LP) nothing."""
+        count of obstacles and of their generators is a graph of its own (one plan, and several), 10-15 s to compile
+        on a 2-core CPU with an empty cache. :class:`~torchrl_brsl.safety.BRSLSafetyLayer` calls it with its env's
+        obstacle specs. Otherwise (eager or global model, obstacles checked by the LP) nothing."""
         if (not self.plan_dependent or self.reach.compile_options is None or self.uses_lp(obstacles)
                 or not obstacles.center.shape[-2]):
             return
-        rest = self.action_low.new_zeros(1, self.reach.state_dim)
-        like = dict(dtype=rest.dtype, device=rest.device)
+        like = dict(dtype=self.action_low.dtype, device=self.action_low.device)
         center, generators = obstacles.center, obstacles.generators
-        placeholders = Obstacles(center.new_zeros(1, *center.shape[-2:], **like),
-                                 generators.new_zeros(1, *generators.shape[-3:], **like),
-                                 torch.zeros(1, center.shape[-2], dtype=torch.bool, device=rest.device))
-        with torch.no_grad():
-            self.evaluate(rest, self.hold(rest).view(1, 1, -1), placeholders)
+        for plans in (1, 2):
+            rest = self.action_low.new_zeros(plans, self.reach.state_dim)
+            placeholders = Obstacles(center.new_zeros(plans, *center.shape[-2:], **like),
+                                     generators.new_zeros(plans, *generators.shape[-3:], **like),
+                                     torch.zeros(plans, center.shape[-2], dtype=torch.bool, device=rest.device))
+            with torch.no_grad():
+                self.evaluate(rest, self.hold(rest).expand(plans, 1, -1), placeholders)
 
     def run_fused(self, function: Callable, batch: Tensor, *args, length: int,
                   fuse_from: int = FUSE_FROM_STEPS) -> Any:
@@ -392,14 +394,15 @@ class PlanChecker:
         return function(batch, *args) if result is None else result
 
     def _compiled(self, function: Callable, batched: tuple[Tensor, ...], *args, cpp_wrapper: bool = False,
-                  **kwargs) -> tuple[Tensor, ...] | None:
+                  single: bool = False, **kwargs) -> tuple[Tensor, ...] | None:
         """``function(*batched, *args, **kwargs)`` compiled with the model's options (and inductor's C++ wrapper with
         ``cpp_wrapper``: faster calls of a graph of many small kernels), without gradients (one graph, whatever the
         caller's grad mode); ``None`` where compiling failed (a warning says why, and it is not tried again). The
         tensors ``batched`` ``[B, ...]`` (``B >= 1``) are padded to at least 2 rows and marked dynamic
-        (the compiler specialises sizes 0 and 1), so that every batch size shares the graph; the results' leading
-        dims are ``B``. The function is compiled from its own copy of the code, kept in the memo the checker's
-        subsets share, so its graphs and the compiler's limit on recompilations are this checker's."""
+        (the compiler specialises sizes 0 and 1), so that every batch size shares the graph; with ``single``, a batch
+        of one is a graph of its own instead (half the work). The results' leading dims are ``B``. The function is
+        compiled from its own copy of the code, kept in the memo the checker's subsets share, so its graphs and the
+        compiler's limit on recompilations are this checker's."""
         if self._memo.get(("eager", function)):
             return None
         options = self.reach.compile_options
@@ -409,9 +412,11 @@ class PlanChecker:
                                                        **inductor_kwargs(options, cpp_wrapper=cpp_wrapper)))
             count, padded = batched[0].shape[0], []
             for tensor in batched:
-                tensor = tensor.expand(2, *tensor.shape[1:]) if count < 2 else tensor
-                tensor = tensor.contiguous() if tensor._base is None else tensor.clone()
-                torch._dynamo.mark_dynamic(tensor, 0)
+                tensor = tensor.expand(2, *tensor.shape[1:]) if count < 2 and not single else tensor
+                tensor = tensor.contiguous()
+                tensor = tensor.clone(memory_format=torch.contiguous_format) if tensor._base is not None else tensor
+                if count > 1 or not single:
+                    torch._dynamo.mark_dynamic(tensor, 0)
                 padded.append(tensor)
             with torch.no_grad():
                 return tuple(t[:count] for t in compiled(*padded, *args, **kwargs))
@@ -589,7 +594,7 @@ class PlanChecker:
         values = None
         if self.reach.compile_options is not None and not (torch.is_grad_enabled() and positions.requires_grad):
             fused = self._compiled(_plan_gauge, (sets.generators, sets.center, obstacles.center, obstacles.generators),
-                                   self._position_index, self.set_width, cpp_wrapper=True)
+                                   self._position_index, self.set_width, cpp_wrapper=True, single=True)
             if fused is not None and bool(fused[-1].all()):
                 values, picked, weights, _ = fused
         if values is None:
