@@ -267,8 +267,8 @@ class FacetQPAdjuster:
         (:func:`_leaf_rollout`), its evaluation and its :class:`Gauge`; ``None`` where it would not use them.
 
         :class:`~torchrl_brsl.safety.SafetyDecision` calls this where the last step adjusted every env. The compiled
-        plan loop pads one plan to two, so the reference rides along, its tangents costing 0.3 ms on the Turtlebot's
-        16-step plans; a rollout of its own would cost 2.1 ms. Both are checked in one call as well.
+        plan loop with tangents pads one plan to two, so the reference rides along, its tangents costing 0.3 ms on the
+        Turtlebot's 16-step plans; a rollout of its own would cost 2.1 ms. Both are checked in one call as well.
         """
         if not checker.plan_dependent or checker.uses_lp(obstacles):
             return checker.evaluate(x0, plan, obstacles), None
@@ -386,9 +386,9 @@ FIRST_HALVINGS = 2
 EARLY_SHARE = 0.6
 """The facet QP checks its full and half step first, and the other halvings only for the envs where both fail,
 while a running share (weight 0.2 per call) of at least this many adjustments took one of those two; else all in
-one batch. A batch of one plan is padded to two in the compiled loop, so at one env the half step rides along with
-the full one (1.8 ms on the Turtlebot's 16-step plans, against 2.7 for all five and 2.2 for the last three): the
-first batch alone pays off from a share of about 0.6. On ``bench_layer.py``'s wall scene 71 of 85 adjustments took
+one batch. At one env the full and the half step are one batch of two plans (1.8 ms on the Turtlebot's 16-step
+plans, against 2.7 for all five and 2.2 for the last three, measured when one plan was padded to two): the first
+batch alone pays off from a share of about 0.6. On ``bench_layer.py``'s wall scene 71 of 85 adjustments took
 one of the two (11.0-11.4 -> 8.8-9.7 ms a step, with :meth:`FacetQPAdjuster.evaluate_paired`); on
 ``bench_layer_batch.py``'s walls fewer do, and two batches took 6.7-6.9 against 6.2-7.2 ms at one env and
 17.5-18.1 against 14.6-15.9 at four (three runs each, alternated in one process)."""
