@@ -19,11 +19,11 @@ RUN = $(if $(MALLOC),LD_PRELOAD=$(MALLOC) )$(PY)
 install: $(STAMP)
 
 # torch first, pinned to the CPU build, so resolving the package pulls no CUDA build.
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet torch==2.13.0
-	$(PY) -m pip install --quiet -e '.[test]'
+	$(PY) -m pip install --quiet -e '.[test]' -c constraints.txt
 	touch $(STAMP)
 
 demo: $(STAMP)
@@ -41,8 +41,8 @@ test: $(STAMP)
 # (the build is the test tests/docs/test_docs_build.py)
 DOCS_STAMP := $(VENV)/.installed-docs
 
-$(DOCS_STAMP): $(STAMP) pyproject.toml
-	$(PY) -m pip install --quiet -e '.[test,docs]'
+$(DOCS_STAMP): $(STAMP) pyproject.toml constraints.txt
+	$(PY) -m pip install --quiet -e '.[test,docs]' -c constraints.txt
 	touch $(DOCS_STAMP)
 
 docs: $(DOCS_STAMP)
