@@ -36,42 +36,58 @@ def test_a_weakened_error_bound_is_caught_by_the_sampling():
     assert sum(caught.values()) > 0, caught
 
 
+def edge_violations(system, reach, plan_seeds=(1, 2, 3)):
+    """Sampled states outside ``reach``'s sets along 100 plans from starts near the data's edges, per plan seed."""
+    return [sampled(system, reach, seed=seed, samples=100, spread=0.95, n_plans=100).violations for seed in plan_seeds]
+
+
+def free_hinges(monkeypatch):
+    """Hinges free in every input (``SPARSE_SHARE = 0``), without the end span and the bend term (which covers part of
+    what the first two leave)."""
+    monkeypatch.setattr(hinges, "SPARSE_SHARE", 0.0)
+    monkeypatch.setattr(hinges, "_spans_ends", lambda inputs, directions, knots: torch.ones(len(knots), dtype=bool))
+    monkeypatch.setattr(cells, "bend_error", lambda low, high, features: low.new_zeros(low.shape[0]))
+
+
 def test_starts_near_the_data_edges_are_sound_with_sparse_hinges(monkeypatch):
     """From starts near the data region's edges, where the plans leave the data, no sampled state falls outside the
     bicycle's body-frame sets from 500 or 2,000 steps (100 plans x 100 samples, plan seeds 1, 2, 3). Teeth: with
-    hinges free in every input (``SPARSE_SHARE = 0``, as before) and without the bend term (which covers part of
-    this too), the 500-step model let 6, 11 and 242 out: a speed hinge tilted into the steering left the leaf
-    holding full braking from rest with a steering slope."""
+    hinges free in every input (:func:`free_hinges`), the model of another 500 steps (data seed 5) let 189, 188 and
+    975 out (measured; which data the free hinges fail on follows the fit's rounding, as pinned in constraints.txt)."""
     system = KinematicBicycle()
+    assert edge_violations(system, fit(system, 500, body_frame=system.body_frame)) == [0, 0, 0]
+    assert edge_violations(system, fit(system, 2000, body_frame=system.body_frame)) == [0, 0, 0]
+    free_hinges(monkeypatch)
+    leaky = edge_violations(system, fit(system, 500, seed=5, body_frame=system.body_frame))
+    assert sum(leaky) > 0, "the sampling should catch the free hinges' model near the edges"
 
-    def outside(num):
-        reach = fit(system, num, body_frame=system.body_frame)
-        return [sampled(system, reach, seed=seed, samples=100, spread=0.95, n_plans=100).violations
-                for seed in (1, 2, 3)]
 
-    assert outside(500) == [0, 0, 0] and outside(2000) == [0, 0, 0]
-    monkeypatch.setattr(hinges, "SPARSE_SHARE", 0.0)
-    monkeypatch.setattr(cells, "bend_error", lambda low, high, features: low.new_zeros(low.shape[0]))
-    assert sum(outside(500)) > 0, "the sampling should catch the free hinges' model near the edges"
+def test_the_end_span_keeps_a_hinge_off_the_braking_corner(monkeypatch):
+    """Data seed 5 (500 steps): refined without the end span (:func:`~torchrl_brsl.reach.hinges.refine_hinges`), the
+    speed hinge left 2 points on its side, in the corner where the speed clips at 0 under hard braking, and the model
+    predicted 0.07-0.12 m/s where the bicycle stops: 156 and 835 of 10,000 sampled states from edge starts fell
+    outside (plan seeds 2, 3), 0 with the end span. (Plan seed 1 lets 27 out with it, 127 without: the 27 at the
+    heading's first step at full steer and 1.2 m/s, docs/limits.md.)"""
+    system = KinematicBicycle()
+    assert edge_violations(system, fit(system, 500, seed=5, body_frame=system.body_frame), (2, 3)) == [0, 0]
+    monkeypatch.setattr(hinges, "_spans_ends", lambda inputs, directions, knots: torch.ones(len(knots), dtype=bool))
+    assert min(edge_violations(system, fit(system, 500, seed=5, body_frame=system.body_frame), (2, 3))) > 0
 
 
 def test_held_out_check_warns_where_the_data_are_sparse_and_widens_those_leaves(monkeypatch):
-    """``held_out_folds``: on the leaky model of free hinges (``SPARSE_SHARE = 0``), transitions held out of the
-    bicycle's 500-step fit fall outside their one-step bounds (a warning says so) and the leaves holding them are
-    widened, which cuts the leaks from starts near the edges (measured, plan seeds 1, 2, 3: 6, 11 and 242 outside
-    before, 6, 0 and 168 after; without the bend term, which covers part of this too); the other leaves keep their
-    bounds."""
-    monkeypatch.setattr(hinges, "SPARSE_SHARE", 0.0)
-    monkeypatch.setattr(cells, "bend_error", lambda low, high, features: low.new_zeros(low.shape[0]))
+    """``held_out_folds``: on the leaky model of free hinges (:func:`free_hinges`, data seed 5), transitions held out of
+    the bicycle's 500-step fit fall outside their one-step bounds (a warning says so) and the leaves holding them are
+    widened, which cuts the leaks from starts near the edges (measured, plan seeds 1, 2, 3: 189, 188 and 975 outside
+    before, 0, 0 and 609 after); the other leaves keep their bounds."""
+    free_hinges(monkeypatch)
     system = KinematicBicycle()
-    plain = fit(system, 500, body_frame=system.body_frame)
+    plain = fit(system, 500, seed=5, body_frame=system.body_frame)
     with pytest.warns(UserWarning, match="held-out transitions fell outside"):
-        checked = fit(system, 500, body_frame=system.body_frame, held_out_folds=5)
+        checked = fit(system, 500, seed=5, body_frame=system.body_frame, held_out_folds=5)
     widened = checked.cell_errors > plain.cell_errors
     assert widened.any() and torch.equal(checked.cell_errors[~widened], plain.cell_errors[~widened])
     assert (checked.cell_lipschitz >= plain.cell_lipschitz).all()
-    outside = {name: [sampled(system, reach, seed=seed, samples=100, spread=0.95, n_plans=100).violations
-                      for seed in (1, 2, 3)] for name, reach in (("plain", plain), ("checked", checked))}
+    outside = {name: edge_violations(system, reach) for name, reach in (("plain", plain), ("checked", checked))}
     assert all(c <= p for c, p in zip(outside["checked"], outside["plain"])), outside
     assert sum(outside["checked"]) < sum(outside["plain"]), outside
 

@@ -6,6 +6,7 @@ from torchrl_brsl.reach import (CappedVelocityServo, DataDrivenReach, KinematicB
                                 fit_hinges, hinge_features, product_relaxation, prune_hinges, refine_hinges,
                                 relu_relaxation, sample_reach,
                                 split_directions)
+from torchrl_brsl.reach import hinges
 from torchrl_brsl.sets import Zonotope
 
 
@@ -51,6 +52,26 @@ def test_a_hinge_moves_off_the_grid_to_a_kink_no_candidate_follows():
     start = torch.tensor([[1.0, 0.0]], dtype=torch.float64), torch.tensor([0.1], dtype=torch.float64)
     directions, knots = refine_hinges(z, *start, base, target)
     assert (directions - true).abs().max() < 0.01 and (knots - 0.137).abs().max() < 0.005, (directions, knots)
+
+
+def test_a_refined_hinge_keeps_more_points_on_either_side_than_it_has_parameters(monkeypatch):
+    """A kink with 3 of 1,000 points beyond it (``3 relu(z_0 - 0.994)``): refined from the grid's knot 0.9, the hinge
+    would move there and be fitted to those 3 points (it has ``d + 1 = 3`` parameters), so it stays at 0.9; without the
+    end span it moves to the 3 points."""
+    gen = torch.Generator().manual_seed(3)
+    z = torch.rand(1000, 2, generator=gen, dtype=torch.float64) * 2 - 1
+    target = 3 * (z[:, 0] - 0.994).clamp_min(0) + 0.02 * (torch.rand(1000, generator=gen, dtype=torch.float64) - 0.5)
+    base = torch.cat((torch.ones(1000, 1, dtype=z.dtype), z), dim=1)
+    start = torch.tensor([[1.0, 0.0]], dtype=torch.float64), torch.tensor([0.9], dtype=torch.float64)
+
+    def fewest_beyond(directions, knots):
+        active = (z @ directions.T > knots).sum(0)
+        return int(torch.minimum(active, len(z) - active).min())
+
+    assert int((z[:, 0] > 0.994).sum()) == 3
+    assert fewest_beyond(*refine_hinges(z, *start, base, target)) >= z.shape[1] + 2
+    monkeypatch.setattr(hinges, "_spans_ends", lambda inputs, directions, knots: torch.ones(len(knots), dtype=bool))
+    assert fewest_beyond(*refine_hinges(z, *start, base, target)) < z.shape[1] + 2
 
 
 def test_a_redundant_hinge_is_dropped_and_a_needed_one_kept():
