@@ -41,11 +41,23 @@ def edge_violations(system, reach, plan_seeds=(1, 2, 3)):
     return [sampled(system, reach, seed=seed, samples=100, spread=0.95, n_plans=100).violations for seed in plan_seeds]
 
 
-def free_hinges(monkeypatch):
-    """Hinges free in every input (``SPARSE_SHARE = 0``), without the end span and the bend term (which covers part of
-    what the first two leave)."""
-    monkeypatch.setattr(hinges, "SPARSE_SHARE", 0.0)
+def without_range_error(monkeypatch):
+    """Leaves whose intervals need not reach the data's plateaus (:func:`~torchrl_brsl.reach.cells.range_error`)."""
+    monkeypatch.setattr(cells, "range_error", lambda *args: torch.zeros((), dtype=torch.float64))
+
+
+def without_end_span(monkeypatch):
+    """Refined hinges kept however few points lie beyond their knots
+    (:func:`~torchrl_brsl.reach.hinges.refine_hinges`)."""
     monkeypatch.setattr(hinges, "_spans_ends", lambda inputs, directions, knots: torch.ones(len(knots), dtype=bool))
+
+
+def free_hinges(monkeypatch):
+    """Hinges free in every input (``SPARSE_SHARE = 0``) and without the end span; no bend term and no range error
+    (which cover part of what the first two leave)."""
+    monkeypatch.setattr(hinges, "SPARSE_SHARE", 0.0)
+    without_end_span(monkeypatch)
+    without_range_error(monkeypatch)
     monkeypatch.setattr(cells, "bend_error", lambda low, high, features: low.new_zeros(low.shape[0]))
 
 
@@ -66,12 +78,39 @@ def test_the_end_span_keeps_a_hinge_off_the_braking_corner(monkeypatch):
     """Data seed 5 (500 steps): refined without the end span (:func:`~torchrl_brsl.reach.hinges.refine_hinges`), the
     speed hinge left 2 points on its side, in the corner where the speed clips at 0 under hard braking, and the model
     predicted 0.07-0.12 m/s where the bicycle stops: 156 and 835 of 10,000 sampled states from edge starts fell
-    outside (plan seeds 2, 3), 0 with the end span. (Plan seed 1 lets 27 out with it, 127 without: the 27 at the
-    heading's first step at full steer and 1.2 m/s, docs/limits.md.)"""
+    outside (plan seeds 2, 3), 0 with the end span. Both without the range error, which covers this corner too.
+    (Plan seed 1 lets 27 out either way: at the heading's first step at full steer and 1.2 m/s, docs/limits.md.)"""
+    without_range_error(monkeypatch)
     system = KinematicBicycle()
     assert edge_violations(system, fit(system, 500, seed=5, body_frame=system.body_frame), (2, 3)) == [0, 0]
-    monkeypatch.setattr(hinges, "_spans_ends", lambda inputs, directions, knots: torch.ones(len(knots), dtype=bool))
+    without_end_span(monkeypatch)
     assert min(edge_violations(system, fit(system, 500, seed=5, body_frame=system.body_frame), (2, 3))) > 0
+
+
+def test_leaves_reach_the_plateau_where_the_speed_clips(monkeypatch):
+    """Data seed 2 (500 steps) has no hinge along the clip at 0 and 10 points on its plateau: the leaf holding hard
+    braking from rest extrapolated to -0.15 to -0.04 m/s where the bicycle stops, and 34 of 10,000 sampled states
+    from edge starts fell outside (plan seed 3). Each leaf's interval now reaches the plateau at its corners
+    (:func:`~torchrl_brsl.reach.cells.range_error`): the one-step set at rest under full braking holds 0, and none
+    falls outside."""
+    system = KinematicBicycle()
+    reach = fit(system, 500, seed=2, body_frame=system.body_frame)
+    corner = torch.tensor([[0.0, -1.0, 0.0]], dtype=torch.float64) / reach.input_scale  # (v, a, steer)
+    prediction, errors, _ = point_bounds(reach._cells, reach._scaled_data, corner)
+    assert prediction[0, 3] - errors[0, 3] <= 0.0 <= prediction[0, 3] + errors[0, 3]
+    assert edge_violations(system, reach, (3,)) == [0]
+    without_range_error(monkeypatch)
+    assert edge_violations(system, fit(system, 500, seed=2, body_frame=system.body_frame), (3,))[0] > 0
+
+
+def test_only_a_plateau_in_the_data_bounds_an_output():
+    """More than ``d + 1`` points within ``2 w̄`` of the least (largest) value make it a bound; a lone extreme does
+    not."""
+    noise = torch.tensor(0.01, dtype=torch.float64)
+    clipped = torch.cat((torch.zeros(6), torch.linspace(0.1, 1.0, 50))).double()
+    lowest, highest = cells.observed_extremes(clipped, noise, 4)
+    assert float(lowest) == 0.0 and float(highest) == torch.inf
+    assert float(cells.observed_extremes(clipped, noise, 5)[0]) == -torch.inf
 
 
 def test_held_out_check_warns_where_the_data_are_sparse_and_widens_those_leaves(monkeypatch):

@@ -286,7 +286,8 @@ def _output_candidates(inputs: Tensor, target: Tensor, noise_radius: Tensor, n_a
                 theta[1:][~support] = 0.0
             relevance = input_relevance(torch.stack([theta[1:] for theta, _ in fits]), floor=0.0)[0]
             for weights in (relevance.clamp_min(floor) * support for floor in METRIC_FLOORS):
-                parts = _output_cells(inputs, boxes, fits, noise_radius, weights, option, margin)
+                parts = _output_cells(inputs, boxes, fits, noise_radius, weights, option, margin,
+                                      (*observed_extremes(target, noise_radius, d), support, directions))
                 parts[2] = torch.cat((parts[2], option.coefficients.expand(parts[2].shape[0], -1)), dim=-1)
                 candidates.append((parts, weights, option))
     return candidates
@@ -391,9 +392,10 @@ def _cell_boxes(features: Tensor, root: Tensor, leaves: list[tuple], overlap: fl
 
 
 def _output_cells(inputs: Tensor, boxes: list[tuple], fits: list[tuple], noise_radius: Tensor, weights: Tensor,
-                  option: Features, margin: float) -> list[Tensor]:
+                  option: Features, margin: float, observed: tuple[Tensor, Tensor, Tensor]) -> list[Tensor]:
     """The stacked cells of one output in the metric ``weights``, on the features ``option``: the fields of
-    :class:`Cells` from ``low`` to ``score``, then ``members`` ``[N]``."""
+    :class:`Cells` from ``low`` to ``score``, then ``members`` ``[N]``. ``observed``: the output's least and
+    largest value in the data, the inputs it is fitted on and the split directions (:func:`range_error`)."""
     cells, members = [], torch.empty(inputs.shape[0], dtype=torch.long)
     low, high = torch.stack([lo for lo, *_ in boxes]), torch.stack([hi for _, hi, *_ in boxes])
     floors = curvature_floor(low, high, torch.stack([theta[1:, 0] for theta, _ in fits]), weights)
@@ -401,11 +403,75 @@ def _output_cells(inputs: Tensor, boxes: list[tuple], fits: list[tuple], noise_r
     for leaf, ((lo, hi, fit, index), (theta, residual)) in enumerate(zip(boxes, fits)):
         errors, centre, lipschitz, delta = _bound_cell(inputs[fit], residual[:, 0], noise_radius, weights, margin,
                                                        floors[leaf])
-        errors = errors + bends[leaf]
+        errors = torch.maximum(errors + bends[leaf], range_error(inputs, lo, hi, theta[:, 0], centre, option,
+                                                                 noise_radius, *observed))
         cells.append((lo, hi, theta[1:, 0], theta[0, 0] + centre, errors, lipschitz, delta,
                       errors / noise_radius.clamp_min(1e-12)))
         members[index] = leaf
     return [torch.stack(parts) for parts in zip(*cells)] + [members]
+
+
+def observed_extremes(target: Tensor, noise_radius: Tensor, d: int) -> tuple[Tensor, Tensor]:
+    """The output's least and largest value where the data show it as a plateau (more than ``d + 1`` points within
+    the noise's width ``2 w̄`` of it, as a saturation piles them up), ``-inf`` and ``inf`` where they do not."""
+    lowest, highest = target.amin(), target.amax()
+    at_low = int((target <= lowest + 2 * noise_radius).sum()) >= d + 2
+    at_high = int((target >= highest - 2 * noise_radius).sum()) >= d + 2
+    none = lowest.new_tensor(torch.inf)
+    return (lowest if at_low else -none), (highest if at_high else none)
+
+
+RANGE_MARGIN = 0.02
+"""The share of each input's range by which :func:`range_error` looks beyond the data's bounding box: a plan's
+states pass the data's edge by the noise, its actions reach their bounds (random actions fall just short)."""
+
+RANGE_CORNERS = 4096
+"""Most points of a leaf's box (its corners and the midpoints between them along each input) at which
+:func:`range_error` evaluates its model (random ones beyond)."""
+
+
+def range_error(inputs: Tensor, low: Tensor, high: Tensor, theta: Tensor, centre: Tensor, features: Features,
+                noise_radius: Tensor, lowest: Tensor, highest: Tensor, support: Tensor, directions: Tensor) -> Tensor:
+    """The least error half-width at which one leaf's interval reaches the output's observed range at every corner
+    of the leaf's box within the data's bounding box, widened by :data:`RANGE_MARGIN` (the corners of that box along
+    the inputs, and the midpoints between them, that lie in the leaf): a scalar.
+
+    Where an output saturates at the edge of the data region (a speed that clips at 0 under hard braking), a
+    leaf fitted on data that never reach the clip extrapolates past it: its model predicts speeds below any the
+    data show, where the true speed is that least value. The output's least value ``m`` over the data region is at
+    most ``min_i y_i + w̄``, so an interval whose upper end lies below that at some input cannot hold a true value
+    that reaches ``m`` there; the half-width is raised until it does (and likewise at the top), where the data
+    show the value as a plateau (:func:`observed_extremes`). Where the plateau is the least value over the
+    region, a correct interval is widened by at most ``2 w̄``, at those points only.
+
+    Args:
+        inputs: ``[N, d]`` the scaled data; low, high: ``[f]`` the leaf's box in the split directions (the
+            first ``d`` along the inputs).
+        theta: ``[1 + d]`` the leaf's affine fit of what ``features`` leave, ``centre`` its interval's centre.
+        lowest, highest: the output's least and largest value in the data; support: ``[d]`` its inputs.
+        directions: ``[f, d]`` the split directions of ``low`` and ``high``.
+    """
+    d = inputs.shape[1]
+    data_low, data_high = inputs.amin(0), inputs.amax(0)
+    margin = RANGE_MARGIN * (data_high - data_low)
+    lo, hi = torch.maximum(low[:d], data_low - margin), torch.minimum(high[:d], data_high + margin)
+    if bool((lo > hi).any()):
+        return lo.new_zeros(())
+    free = support.nonzero()[:, 0]
+    levels = torch.tensor([0.0, 0.5, 1.0], dtype=lo.dtype)
+    if 3 ** len(free) <= RANGE_CORNERS:
+        corners = torch.cartesian_prod(*([levels] * len(free))).reshape(-1, len(free))
+    else:
+        corners = levels[torch.randint(3, (RANGE_CORNERS, len(free)), generator=torch.Generator().manual_seed(0))]
+    z = ((lo + hi) / 2).expand(len(corners), d).clone()
+    z[:, free] = lo[free] + corners * (hi - lo)[free]
+    phi = z @ directions.T
+    z = z[((phi >= low - 1e-9) & (phi <= high + 1e-9)).all(-1)]
+    if len(z) == 0:
+        return lo.new_zeros(())
+    prediction = theta[0] + centre + z @ theta[1:] + feature_values(z, features) @ features.coefficients
+    short = torch.maximum(lowest + noise_radius - prediction, prediction - highest + noise_radius)
+    return short.amax().clamp_min(0)
 
 
 def curvature_floor(low: Tensor, high: Tensor, slopes: Tensor, weights: Tensor) -> Tensor:
