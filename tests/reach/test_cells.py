@@ -91,12 +91,12 @@ def test_leaves_reach_the_plateau_where_the_speed_clips(monkeypatch):
     """Data seed 2 (500 steps) has no hinge along the clip at 0 and 10 points on its plateau: the leaf holding hard
     braking from rest extrapolated to -0.15 to -0.04 m/s where the bicycle stops, and 34 of 10,000 sampled states
     from edge starts fell outside (plan seed 3). Each leaf's interval now reaches the plateau at its corners
-    (:func:`~torchrl_brsl.reach.cells.range_error`): the one-step set at rest under full braking holds 0, and none
-    falls outside."""
+    (:func:`~torchrl_brsl.reach.cells.range_error`): the one-step set at the data's least speed under their hardest
+    braking holds 0, and none falls outside."""
     system = KinematicBicycle()
     reach = fit(system, 500, seed=2, body_frame=system.body_frame)
-    corner = torch.tensor([[0.0, -1.0, 0.0]], dtype=torch.float64) / reach.input_scale  # (v, a, steer)
-    prediction, errors, _ = point_bounds(reach._cells, reach._scaled_data, corner)
+    corner = reach._scaled_data.amin(0) * torch.tensor([1.0, 1.0, 0.0], dtype=torch.float64)  # (v, a, steer 0)
+    prediction, errors, _ = point_bounds(reach._cells, reach._scaled_data, corner[None])
     assert prediction[0, 3] - errors[0, 3] <= 0.0 <= prediction[0, 3] + errors[0, 3]
     assert edge_violations(system, reach, (3,)) == [0]
     without_range_error(monkeypatch)

@@ -421,10 +421,6 @@ def observed_extremes(target: Tensor, noise_radius: Tensor, d: int) -> tuple[Ten
     return (lowest if at_low else -none), (highest if at_high else none)
 
 
-RANGE_MARGIN = 0.02
-"""The share of each input's range by which :func:`range_error` looks beyond the data's bounding box: a plan's
-states pass the data's edge by the noise, its actions reach their bounds (random actions fall just short)."""
-
 RANGE_CORNERS = 4096
 """Most points of a leaf's box (its corners and the midpoints between them along each input) at which
 :func:`range_error` evaluates its model (random ones beyond)."""
@@ -433,8 +429,8 @@ RANGE_CORNERS = 4096
 def range_error(inputs: Tensor, low: Tensor, high: Tensor, theta: Tensor, centre: Tensor, features: Features,
                 noise_radius: Tensor, lowest: Tensor, highest: Tensor, support: Tensor, directions: Tensor) -> Tensor:
     """The least error half-width at which one leaf's interval reaches the output's observed range at every corner
-    of the leaf's box within the data's bounding box, widened by :data:`RANGE_MARGIN` (the corners of that box along
-    the inputs, and the midpoints between them, that lie in the leaf): a scalar.
+    of the leaf's box within the data's bounding box (the corners of that box along the inputs, and the midpoints
+    between them, that lie in the leaf): a scalar.
 
     Where an output saturates at the edge of the data region (a speed that clips at 0 under hard braking), a
     leaf fitted on data that never reach the clip extrapolates past it: its model predicts speeds below any the
@@ -452,9 +448,7 @@ def range_error(inputs: Tensor, low: Tensor, high: Tensor, theta: Tensor, centre
         directions: ``[f, d]`` the split directions of ``low`` and ``high``.
     """
     d = inputs.shape[1]
-    data_low, data_high = inputs.amin(0), inputs.amax(0)
-    margin = RANGE_MARGIN * (data_high - data_low)
-    lo, hi = torch.maximum(low[:d], data_low - margin), torch.minimum(high[:d], data_high + margin)
+    lo, hi = torch.maximum(low[:d], inputs.amin(0)), torch.minimum(high[:d], inputs.amax(0))
     if bool((lo > hi).any()):
         return lo.new_zeros(())
     free = support.nonzero()[:, 0]
