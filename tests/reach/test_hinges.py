@@ -56,8 +56,8 @@ def test_a_hinge_moves_off_the_grid_to_a_kink_no_candidate_follows():
 
 def test_a_refined_hinge_keeps_more_points_on_either_side_than_it_has_parameters(monkeypatch):
     """A kink with 3 of 1,000 points beyond it (``3 relu(z_0 - 0.994)``): refined from the grid's knot 0.9, the hinge
-    would move there and be fitted to those 3 points (it has ``d + 1 = 3`` parameters), so it stays at 0.9; without the
-    end span it moves to the 3 points."""
+    would move there and be fitted to those 3 points (it has ``d + 1 = 3`` parameters), so it keeps at least ``d + 2``
+    points beyond its knot; without the end span it moves to the 3 points."""
     gen = torch.Generator().manual_seed(3)
     z = torch.rand(1000, 2, generator=gen, dtype=torch.float64) * 2 - 1
     target = 3 * (z[:, 0] - 0.994).clamp_min(0) + 0.02 * (torch.rand(1000, generator=gen, dtype=torch.float64) - 0.5)
