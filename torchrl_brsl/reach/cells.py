@@ -274,7 +274,7 @@ def _output_candidates(inputs: Tensor, target: Tensor, noise_radius: Tensor, n_a
         for kinks in kink_sets:
             kinks = kinks[(kinks[:, ~support] == 0).all(-1)]
             options.append(fit_features(masked @ kinks.T, kinks, masked, target, noise_radius, n_actions=n_actions))
-    candidates = []
+    candidates, observed = [], (*observed_extremes(target, noise_radius, d), support, directions)
     for option in options:
         residual = target - feature_values(inputs, option) @ option.coefficients  # what the features leave
         for allowed in (axes & inside, inside):  # splits along the inputs only, or also the pairs
@@ -286,8 +286,7 @@ def _output_candidates(inputs: Tensor, target: Tensor, noise_radius: Tensor, n_a
                 theta[1:][~support] = 0.0
             relevance = input_relevance(torch.stack([theta[1:] for theta, _ in fits]), floor=0.0)[0]
             for weights in (relevance.clamp_min(floor) * support for floor in METRIC_FLOORS):
-                parts = _output_cells(inputs, boxes, fits, noise_radius, weights, option, margin,
-                                      (*observed_extremes(target, noise_radius, d), support, directions))
+                parts = _output_cells(inputs, boxes, fits, noise_radius, weights, option, margin, observed)
                 parts[2] = torch.cat((parts[2], option.coefficients.expand(parts[2].shape[0], -1)), dim=-1)
                 candidates.append((parts, weights, option))
     return candidates
@@ -449,7 +448,7 @@ def range_error(inputs: Tensor, low: Tensor, high: Tensor, theta: Tensor, centre
     """
     d = inputs.shape[1]
     lo, hi = torch.maximum(low[:d], inputs.amin(0)), torch.minimum(high[:d], inputs.amax(0))
-    if bool((lo > hi).any()):
+    if bool((lo > hi).any()) or not bool(torch.isfinite(lowest) or torch.isfinite(highest)):
         return lo.new_zeros(())
     free = support.nonzero()[:, 0]
     levels = torch.tensor([0.0, 0.5, 1.0], dtype=lo.dtype)
