@@ -263,3 +263,12 @@ def test_without_the_loop_plans_run_as_compiled_steps(bicycle):
     _assert_same(_sets(model, x0, plans), eager)
     model.compile_steps(backend="aot_eager")  # the same arguments but the loop: rebuilt with it
     assert _step_of(model)._compiled_loop is not None
+
+
+def test_an_empty_batch_of_plans_gives_empty_sets(traced):
+    """Zero plans (a filtered batch that kept none) give zero sets, eager and compiled, not a reshape error."""
+    system, eager, compiled = traced
+    x0, plans, _ = random_plans(system, n_plans=0)
+    for model in (eager, compiled):
+        center, radius, covered = _sets(model, x0, plans)
+        assert center.shape == (0, 10, 4) and radius.shape == (0, 10, 4) and covered.shape == (0,)

@@ -49,6 +49,7 @@ it too can hide below the noise.
 """
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -424,12 +425,16 @@ RANGE_CORNERS = 4096
 """Most points of a leaf's box (its corners and the midpoints between them along each input) at which
 :func:`range_error` evaluates its model (random ones beyond)."""
 
+RANGE_VERTEX_SYSTEMS = 20000
+"""Most linear systems :func:`leaf_vertices` solves for one leaf (choices of as many of its planes as the output
+has inputs); a leaf with more gets the grid of :data:`RANGE_CORNERS` only."""
+
 
 def range_error(inputs: Tensor, low: Tensor, high: Tensor, theta: Tensor, centre: Tensor, features: Features,
                 noise_radius: Tensor, lowest: Tensor, highest: Tensor, support: Tensor, directions: Tensor) -> Tensor:
-    """The least error half-width at which one leaf's interval reaches the output's observed range at every corner
-    of the leaf's box within the data's bounding box (the corners of that box along the inputs, and the midpoints
-    between them, that lie in the leaf): a scalar.
+    """The least error half-width at which one leaf's interval reaches the output's observed range at every
+    vertex of the leaf's region within the data's bounding box, cut by its hinges' kinks (:func:`leaf_vertices`),
+    and at the corners and mid-edge points of that box: a scalar.
 
     Where an output saturates at the edge of the data region (a speed that clips at 0 under hard braking), a
     leaf fitted on data that never reach the clip extrapolates past it: its model predicts speeds below any the
@@ -437,7 +442,9 @@ def range_error(inputs: Tensor, low: Tensor, high: Tensor, theta: Tensor, centre
     most ``min_i y_i + w̄``, so an interval whose upper end lies below that at some input cannot hold a true value
     that reaches ``m`` there; the half-width is raised until it does (and likewise at the top), where the data
     show the value as a plateau (:func:`observed_extremes`). Where the plateau is the least value over the
-    region, a correct interval is widened by at most ``2 w̄``, at those points only.
+    region, a correct interval is widened by at most ``2 w̄``, at those points only. A model affine between its
+    hinges' kinks takes its extremes over the region at those vertices, so the check is exact for it; product
+    features can bend it between them.
 
     Args:
         inputs: ``[N, d]`` the scaled data; low, high: ``[f]`` the leaf's box in the split directions (the
@@ -459,12 +466,51 @@ def range_error(inputs: Tensor, low: Tensor, high: Tensor, theta: Tensor, centre
     z = ((lo + hi) / 2).expand(len(corners), d).clone()
     z[:, free] = lo[free] + corners * (hi - lo)[free]
     phi = z @ directions.T
-    z = z[((phi >= low - 1e-9) & (phi <= high + 1e-9)).all(-1)]
+    z = torch.cat((z[((phi >= low - 1e-9) & (phi <= high + 1e-9)).all(-1)],
+                   leaf_vertices(lo, hi, low, high, directions, support, features.hinge_directions,
+                                 features.hinge_knots)))
     if len(z) == 0:
         return lo.new_zeros(())
     prediction = theta[0] + centre + z @ theta[1:] + feature_values(z, features) @ features.coefficients
     short = torch.maximum(lowest + noise_radius - prediction, prediction - highest + noise_radius)
     return short.amax().clamp_min(0)
+
+
+def leaf_vertices(lo: Tensor, hi: Tensor, low: Tensor, high: Tensor, directions: Tensor, support: Tensor,
+                  hinge_directions: Tensor, hinge_knots: Tensor) -> Tensor:
+    """The vertices of a leaf's region ``{lo <= z <= hi, low <= directions @ z <= high}`` cut by the hinges'
+    kinks ``hinge_directions @ z = hinge_knots``, in the ``support`` inputs (the others at the middle of
+    ``[lo, hi]``): ``[V, d]``, none where that takes more than :data:`RANGE_VERTEX_SYSTEMS` systems.
+
+    Each choice of ``s`` of these planes (``s`` inputs in the support) that meets in one point inside the
+    region is a vertex, by enumeration: an output's support and a leaf's finite faces are few.
+
+    Args:
+        lo, hi: ``[d]`` the box along the inputs; low, high: ``[f]`` the leaf's box along ``directions``
+            ``[f, d]`` (the rows that use only the support and have a finite side give faces).
+        support: ``[d]`` bool; hinge_directions: ``[H, d]``, hinge_knots: ``[H]`` (zero rows: none).
+    """
+    free = support.nonzero()[:, 0]
+    rows = directions[:, free]
+    within = (directions[:, ~support] == 0).all(-1)
+    within[:len(lo)] = False  # the axes: lo and hi
+    faces = [(rows[within & torch.isfinite(high)], high[within & torch.isfinite(high)]),
+             (-rows[within & torch.isfinite(low)], -low[within & torch.isfinite(low)])]
+    eye = torch.eye(len(free), dtype=lo.dtype)
+    faces += [(eye, hi[free]), (-eye, -lo[free])]
+    face_rows, face_bounds = torch.cat([f[0] for f in faces]), torch.cat([f[1] for f in faces])
+    kinks = hinge_directions[:, free].abs().sum(-1) > 0
+    planes = torch.cat((face_rows, hinge_directions[kinks][:, free]))
+    values = torch.cat((face_bounds, hinge_knots[kinks]))
+    if len(free) == 0 or math.comb(len(planes), len(free)) > RANGE_VERTEX_SYSTEMS:
+        return lo.new_zeros(0, len(lo))
+    choice = torch.combinations(torch.arange(len(planes)), len(free)).reshape(-1, len(free))
+    solution, info = torch.linalg.solve_ex(planes[choice], values[choice])
+    points = solution[(info == 0) & torch.isfinite(solution).all(-1)]
+    inside = (points @ face_rows.T <= face_bounds + 1e-9 * (1 + face_bounds.abs())).all(-1)
+    z = ((lo + hi) / 2).expand(int(inside.sum()), -1).clone()
+    z[:, free] = points[inside]
+    return z
 
 
 def curvature_floor(low: Tensor, high: Tensor, slopes: Tensor, weights: Tensor) -> Tensor:
@@ -827,7 +873,7 @@ def _grouped_distance(layout: LeafLayout, query: Tensor, near: Tensor | None) ->
     n, n_leaves = layout.representatives.shape[:2]
     if near is None:  # |q - p|² = |p|² - 2 q.p + |q|², the nearest of each leaf's slots
         squared = torch.baddbmm(layout.norms, query, layout.points, alpha=-2).add_(query.square().sum(-1, keepdim=True))
-        return squared.view(n, query.shape[1], n_leaves, -1).amin(-1).clamp_min_(0)
+        return squared.view(n, query.shape[1], n_leaves, layout.norms.shape[-1] // n_leaves).amin(-1).clamp_min_(0)
     bound = (query.unsqueeze(-2) - layout.representatives.unsqueeze(1)).square().sum(-1)  # [n, B, M]
     near = near.reshape(-1, n, near.shape[-1]).transpose(0, 1)  # [n, B, K]
     blocks = layout.leaves[torch.arange(n, device=near.device)[:, None, None], near]  # [n, B, K, d, S]

@@ -59,7 +59,7 @@ class BlackBoxSystem:
     def sample_actions(self, *shape: int, generator: torch.Generator | None = None) -> Tensor:
         """Uniform admissible actions: ``[*shape, m]``."""
         flat = _uniform(self.action_low, self.action_high, math.prod(shape), generator)
-        return flat.reshape(*shape, -1)
+        return flat.reshape(*shape, self.action_low.shape[-1])
 
     def offline_data(self, num: int = 500, generator: torch.Generator | None = None):
         """``num`` noisy transitions from random states and actions: ``(x_minus, x_plus, u_minus)``."""
