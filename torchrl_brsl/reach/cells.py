@@ -275,7 +275,7 @@ def _output_candidates(inputs: Tensor, target: Tensor, noise_radius: Tensor, n_a
         for kinks in kink_sets:
             kinks = kinks[(kinks[:, ~support] == 0).all(-1)]
             options.append(fit_features(masked @ kinks.T, kinks, masked, target, noise_radius, n_actions=n_actions))
-    candidates, observed = [], (*observed_extremes(target, noise_radius, d), support, directions)
+    candidates, extremes = [], observed_extremes(target, noise_radius, d)
     for option in options:
         residual = target - feature_values(inputs, option) @ option.coefficients  # what the features leave
         for allowed in (axes & inside, inside):  # splits along the inputs only, or also the pairs
@@ -286,8 +286,11 @@ def _output_candidates(inputs: Tensor, target: Tensor, noise_radius: Tensor, n_a
             for theta, _ in fits:  # a zeroed input's slope, exactly (the curvature floor of any other is infinite)
                 theta[1:][~support] = 0.0
             relevance = input_relevance(torch.stack([theta[1:] for theta, _ in fits]), floor=0.0)[0]
+            plateau = bool(torch.isfinite(extremes[0]) or torch.isfinite(extremes[1]))
+            spans = [prediction_range(inputs, lo, hi, theta[:, 0], option, support, directions) if plateau else None
+                     for (lo, hi, *_), (theta, _) in zip(boxes, fits)]
             for weights in (relevance.clamp_min(floor) * support for floor in METRIC_FLOORS):
-                parts = _output_cells(inputs, boxes, fits, noise_radius, weights, option, margin, observed)
+                parts = _output_cells(inputs, boxes, fits, noise_radius, weights, option, margin, spans, extremes)
                 parts[2] = torch.cat((parts[2], option.coefficients.expand(parts[2].shape[0], -1)), dim=-1)
                 candidates.append((parts, weights, option))
     return candidates
@@ -392,10 +395,11 @@ def _cell_boxes(features: Tensor, root: Tensor, leaves: list[tuple], overlap: fl
 
 
 def _output_cells(inputs: Tensor, boxes: list[tuple], fits: list[tuple], noise_radius: Tensor, weights: Tensor,
-                  option: Features, margin: float, observed: tuple[Tensor, Tensor, Tensor]) -> list[Tensor]:
+                  option: Features, margin: float, spans: list[Tensor | None],
+                  extremes: tuple[Tensor, Tensor]) -> list[Tensor]:
     """The stacked cells of one output in the metric ``weights``, on the features ``option``: the fields of
-    :class:`Cells` from ``low`` to ``score``, then ``members`` ``[N]``. ``observed``: the output's least and
-    largest value in the data, the inputs it is fitted on and the split directions (:func:`range_error`)."""
+    :class:`Cells` from ``low`` to ``score``, then ``members`` ``[N]``. ``spans``: each leaf's
+    :func:`prediction_range` (``None``: not needed), ``extremes``: :func:`observed_extremes`."""
     cells, members = [], torch.empty(inputs.shape[0], dtype=torch.long)
     low, high = torch.stack([lo for lo, *_ in boxes]), torch.stack([hi for _, hi, *_ in boxes])
     floors = curvature_floor(low, high, torch.stack([theta[1:, 0] for theta, _ in fits]), weights)
@@ -403,8 +407,7 @@ def _output_cells(inputs: Tensor, boxes: list[tuple], fits: list[tuple], noise_r
     for leaf, ((lo, hi, fit, index), (theta, residual)) in enumerate(zip(boxes, fits)):
         errors, centre, lipschitz, delta = _bound_cell(inputs[fit], residual[:, 0], noise_radius, weights, margin,
                                                        floors[leaf])
-        errors = torch.maximum(errors + bends[leaf], range_error(inputs, lo, hi, theta[:, 0], centre, option,
-                                                                 noise_radius, *observed))
+        errors = torch.maximum(errors + bends[leaf], range_error(spans[leaf], centre, noise_radius, *extremes))
         cells.append((lo, hi, theta[1:, 0], theta[0, 0] + centre, errors, lipschitz, delta,
                       errors / noise_radius.clamp_min(1e-12)))
         members[index] = leaf
@@ -423,18 +426,16 @@ def observed_extremes(target: Tensor, noise_radius: Tensor, d: int) -> tuple[Ten
 
 RANGE_CORNERS = 4096
 """Most points of a leaf's box (its corners and the midpoints between them along each input) at which
-:func:`range_error` evaluates its model (random ones beyond)."""
+:func:`prediction_range` evaluates its model (random ones beyond)."""
 
 RANGE_VERTEX_SYSTEMS = 20000
 """Most linear systems :func:`leaf_vertices` solves for one leaf (choices of as many of its planes as the output
 has inputs); a leaf with more gets the grid of :data:`RANGE_CORNERS` only."""
 
 
-def range_error(inputs: Tensor, low: Tensor, high: Tensor, theta: Tensor, centre: Tensor, features: Features,
-                noise_radius: Tensor, lowest: Tensor, highest: Tensor, support: Tensor, directions: Tensor) -> Tensor:
-    """The least error half-width at which one leaf's interval reaches the output's observed range at every
-    vertex of the leaf's region within the data's bounding box, cut by its hinges' kinks (:func:`leaf_vertices`),
-    and at the corners and mid-edge points of that box: a scalar.
+def range_error(span: Tensor | None, centre: Tensor, noise_radius: Tensor, lowest: Tensor, highest: Tensor) -> Tensor:
+    """The least error half-width at which one leaf's interval reaches the output's observed range wherever its model
+    is checked (:func:`prediction_range`): a scalar.
 
     Where an output saturates at the edge of the data region (a speed that clips at 0 under hard braking), a
     leaf fitted on data that never reach the clip extrapolates past it: its model predicts speeds below any the
@@ -442,21 +443,38 @@ def range_error(inputs: Tensor, low: Tensor, high: Tensor, theta: Tensor, centre
     most ``min_i y_i + w̄``, so an interval whose upper end lies below that at some input cannot hold a true value
     that reaches ``m`` there; the half-width is raised until it does (and likewise at the top), where the data
     show the value as a plateau (:func:`observed_extremes`). Where the plateau is the least value over the
-    region, a correct interval is widened by at most ``2 w̄``, at those points only. A model affine between its
-    hinges' kinks takes its extremes over the region at those vertices, so the check is exact for it; product
-    features can bend it between them.
+    region, a correct interval is widened by at most ``2 w̄``, at those points only.
+
+    Args:
+        span: ``[2]`` the least and largest value of the leaf's model without its interval's centre ``centre``
+            (``None``: the output shows no plateau, or the leaf's box misses the data's).
+        lowest, highest: the output's least and largest value in the data where they are plateaus (else ``∓inf``).
+    """
+    if span is None:
+        return centre.new_zeros(())
+    short = torch.maximum(lowest + noise_radius - (span[0] + centre), span[1] + centre - highest + noise_radius)
+    return short.clamp_min(0)
+
+
+def prediction_range(inputs: Tensor, low: Tensor, high: Tensor, theta: Tensor, features: Features, support: Tensor,
+                     directions: Tensor) -> Tensor | None:
+    """The least and largest value ``[2]`` of one leaf's model (without its interval's centre) at every vertex of the
+    leaf's region within the data's bounding box, cut by its hinges' kinks (:func:`leaf_vertices`), and at the
+    corners and mid-edge points of that box; ``None`` where the leaf's box misses the data's.
+
+    A model affine between its hinges' kinks takes its extremes over the region at those vertices, so the range is
+    exact for it; product features can bend it between them.
 
     Args:
         inputs: ``[N, d]`` the scaled data; low, high: ``[f]`` the leaf's box in the split directions (the
             first ``d`` along the inputs).
-        theta: ``[1 + d]`` the leaf's affine fit of what ``features`` leave, ``centre`` its interval's centre.
-        lowest, highest: the output's least and largest value in the data; support: ``[d]`` its inputs.
-        directions: ``[f, d]`` the split directions of ``low`` and ``high``.
+        theta: ``[1 + d]`` the leaf's affine fit of what ``features`` leave.
+        support: ``[d]`` the output's inputs; directions: ``[f, d]`` the split directions of ``low`` and ``high``.
     """
     d = inputs.shape[1]
     lo, hi = torch.maximum(low[:d], inputs.amin(0)), torch.minimum(high[:d], inputs.amax(0))
-    if bool((lo > hi).any()) or not bool(torch.isfinite(lowest) or torch.isfinite(highest)):
-        return lo.new_zeros(())
+    if bool((lo > hi).any()):
+        return None
     free = support.nonzero()[:, 0]
     levels = torch.tensor([0.0, 0.5, 1.0], dtype=lo.dtype)
     if 3 ** len(free) <= RANGE_CORNERS:
@@ -470,10 +488,9 @@ def range_error(inputs: Tensor, low: Tensor, high: Tensor, theta: Tensor, centre
                    leaf_vertices(lo, hi, low, high, directions, support, features.hinge_directions,
                                  features.hinge_knots)))
     if len(z) == 0:
-        return lo.new_zeros(())
-    prediction = theta[0] + centre + z @ theta[1:] + feature_values(z, features) @ features.coefficients
-    short = torch.maximum(lowest + noise_radius - prediction, prediction - highest + noise_radius)
-    return short.amax().clamp_min(0)
+        return None
+    prediction = theta[0] + z @ theta[1:] + feature_values(z, features) @ features.coefficients
+    return torch.stack((prediction.amin(), prediction.amax()))
 
 
 def leaf_vertices(lo: Tensor, hi: Tensor, low: Tensor, high: Tensor, directions: Tensor, support: Tensor,
