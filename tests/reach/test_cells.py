@@ -64,20 +64,20 @@ def free_hinges(monkeypatch):
 def test_starts_near_the_data_edges_are_sound_with_sparse_hinges(monkeypatch):
     """From starts near the data region's edges, where the plans leave the data, no sampled state falls outside the
     bicycle's body-frame sets from 500 or 2,000 steps (100 plans x 100 samples, plan seeds 1, 2, 3). Teeth: with
-    hinges free in every input (:func:`free_hinges`), the model of another 500 steps (data seed 5) let 189, 188 and
-    975 out (measured; which data the free hinges fail on follows the fit's rounding, as pinned in constraints.txt)."""
+    hinges free in every input (:func:`free_hinges`), the model of another 500 steps (data seed 10) let 202, 254 and
+    0 out (measured; which data the free hinges fail on follows the fit's rounding, as pinned in constraints.txt)."""
     system = KinematicBicycle()
     assert edge_violations(system, fit(system, 500, body_frame=system.body_frame)) == [0, 0, 0]
     assert edge_violations(system, fit(system, 2000, body_frame=system.body_frame)) == [0, 0, 0]
     free_hinges(monkeypatch)
-    leaky = edge_violations(system, fit(system, 500, seed=5, body_frame=system.body_frame))
+    leaky = edge_violations(system, fit(system, 500, seed=10, body_frame=system.body_frame))
     assert sum(leaky) > 0, "the sampling should catch the free hinges' model near the edges"
 
 
 def test_the_end_span_keeps_a_hinge_off_the_braking_corner(monkeypatch):
     """Data seed 5 (500 steps): refined without the end span (:func:`~torchrl_brsl.reach.hinges.refine_hinges`), the
     speed hinge left 2 points on its side, in the corner where the speed clips at 0 under hard braking, and the model
-    predicted 0.07-0.12 m/s where the bicycle stops: 156 and 835 of 10,000 sampled states from edge starts fell
+    put the stopped bicycle up to 0.06 m/s beyond its bound: 131 and 912 of 10,000 sampled states from edge starts fell
     outside (plan seeds 2, 3), 0 with the end span. Both without the range error, which covers this corner too.
     (Plan seed 1 lets 27 out either way: at the heading's first step at full steer and 1.2 m/s, docs/limits.md.)"""
     without_range_error(monkeypatch)
@@ -127,6 +127,28 @@ def test_the_range_error_looks_at_the_vertices_where_a_hinge_kink_meets_a_leaf(m
     assert leaks() > 0, "the grid alone should miss the vertex"
 
 
+def test_a_noise_free_output_keeps_a_resolution_for_its_misplaced_kinks(monkeypatch):
+    """The capped servo's positions have no noise, and its 2,000-step model finds their kinks (``u - v = 0.5``) to
+    about a millionth: between the fitted and the true kink no data point shows the model's miss. With the bound's
+    noise radius floored at :data:`~torchrl_brsl.reach.cells.RESOLUTION` of the output's range, no one-step query
+    along the kink leaves its set at the worst noise; without the floor, 174 of 5,000 did (measured), 1e-8 m beyond
+    position bounds of about that size."""
+    system = CappedVelocityServo()
+    gen = torch.Generator().manual_seed(1)
+    states = system.sample_states(5000, gen) * 0.7
+    actions = system.sample_actions(5000, generator=gen)
+    actions[:, 0] = states[:, 2] + 0.49 + 0.03 * torch.rand(5000, generator=gen, dtype=torch.float64)
+
+    def leaks():
+        outside, claimed = worst_noise_outside(fit(system, 2000), system.dynamics, states, actions)
+        assert claimed.all()
+        return int(outside.sum())
+
+    assert leaks() == 0
+    monkeypatch.setattr(cells, "RESOLUTION", 0.0)
+    assert leaks() > 0, "without the floor, the sampling should catch the misplaced kink"
+
+
 def test_only_a_plateau_in_the_data_bounds_an_output():
     """More than ``d + 1`` points within ``2 w̄`` of the least (largest) value make it a bound; a lone extreme does
     not."""
@@ -138,15 +160,15 @@ def test_only_a_plateau_in_the_data_bounds_an_output():
 
 
 def test_held_out_check_warns_where_the_data_are_sparse_and_widens_those_leaves(monkeypatch):
-    """``held_out_folds``: on the leaky model of free hinges (:func:`free_hinges`, data seed 5), transitions held out of
-    the bicycle's 500-step fit fall outside their one-step bounds (a warning says so) and the leaves holding them are
-    widened, which cuts the leaks from starts near the edges (measured, plan seeds 1, 2, 3: 189, 188 and 975 outside
-    before, 0, 0 and 609 after); the other leaves keep their bounds."""
+    """``held_out_folds``: on the leaky model of free hinges (:func:`free_hinges`, data seed 10), transitions held out
+    of the bicycle's 500-step fit fall outside their one-step bounds (a warning says so) and the leaves holding them are
+    widened, which cuts the leaks from starts near the edges (measured, plan seeds 1, 2, 3: 202, 254 and 0 outside
+    before, 5, 9 and 0 after); the other leaves keep their bounds."""
     free_hinges(monkeypatch)
     system = KinematicBicycle()
-    plain = fit(system, 500, seed=5, body_frame=system.body_frame)
+    plain = fit(system, 500, seed=10, body_frame=system.body_frame)
     with pytest.warns(UserWarning, match="held-out transitions fell outside"):
-        checked = fit(system, 500, seed=5, body_frame=system.body_frame, held_out_folds=5)
+        checked = fit(system, 500, seed=10, body_frame=system.body_frame, held_out_folds=5)
     widened = checked.cell_errors > plain.cell_errors
     assert widened.any() and torch.equal(checked.cell_errors[~widened], plain.cell_errors[~widened])
     assert (checked.cell_lipschitz >= plain.cell_lipschitz).all()

@@ -55,12 +55,12 @@ def test_a_hinge_moves_off_the_grid_to_a_kink_no_candidate_follows():
 
 
 def test_a_refined_hinge_keeps_more_points_on_either_side_than_it_has_parameters(monkeypatch):
-    """A kink with 3 of 1,000 points beyond it (``3 relu(z_0 - 0.994)``): refined from the grid's knot 0.9, the hinge
+    """A kink with 3 of 1,000 points beyond it (``5 relu(z_0 - 0.994)``): refined from the grid's knot 0.9, the hinge
     would move there and be fitted to those 3 points (it has ``d + 1 = 3`` parameters), so it keeps at least ``d + 2``
     points beyond its knot; without the end span it moves to the 3 points."""
     gen = torch.Generator().manual_seed(3)
     z = torch.rand(1000, 2, generator=gen, dtype=torch.float64) * 2 - 1
-    target = 3 * (z[:, 0] - 0.994).clamp_min(0) + 0.02 * (torch.rand(1000, generator=gen, dtype=torch.float64) - 0.5)
+    target = 5 * (z[:, 0] - 0.994).clamp_min(0) + 0.02 * (torch.rand(1000, generator=gen, dtype=torch.float64) - 0.5)
     base = torch.cat((torch.ones(1000, 1, dtype=z.dtype), z), dim=1)
     start = torch.tensor([[1.0, 0.0]], dtype=torch.float64), torch.tensor([0.9], dtype=torch.float64)
 
@@ -72,6 +72,24 @@ def test_a_refined_hinge_keeps_more_points_on_either_side_than_it_has_parameters
     assert fewest_beyond(*refine_hinges(z, *start, base, target)) >= z.shape[1] + 2
     monkeypatch.setattr(hinges, "_spans_ends", lambda inputs, directions, knots: torch.ones(len(knots), dtype=bool))
     assert fewest_beyond(*refine_hinges(z, *start, base, target)) < z.shape[1] + 2
+
+
+def test_the_refinements_closed_form_gradient_is_autograds():
+    """The residual's gradient in the hinges' rows that the refinement descends (variable projection) equals autograd
+    through the least-squares solve, with some hinges active on few points and one on none."""
+    gen = torch.Generator().manual_seed(0)
+    inputs = torch.rand(300, 3, generator=gen, dtype=torch.float64)
+    base = torch.cat((torch.ones(300, 1, dtype=torch.float64), inputs), dim=1)
+    target = (inputs[:, 0] - 0.6).clamp_min(0) - 0.5 * (inputs[:, 1] + inputs[:, 2] - 1.2).clamp_min(0)
+    params = torch.tensor([[1.0, 0.1, 0.0, 0.55], [0.0, 1.0, 0.9, 1.1], [0.2, 0.3, 0.1, 0.6], [1.0, 1.0, 1.0, 9.0]],
+                          dtype=torch.float64)
+    loss, gradient = hinges._residual_gradient(inputs, params, base, target)
+    free = params.clone().requires_grad_(True)
+    reference = hinges._residual(torch.cat((base, hinge_features(inputs, free[:, :-1], free[:, -1])), 1), target)
+    reference.backward()
+    torch.testing.assert_close(loss, reference.detach())
+    torch.testing.assert_close(gradient, free.grad, rtol=1e-6, atol=1e-9)
+    assert gradient[:3].abs().amax() > 1e-3 and float(gradient[3].abs().amax()) == 0.0
 
 
 def test_a_redundant_hinge_is_dropped_and_a_needed_one_kept():

@@ -276,6 +276,7 @@ def _output_candidates(inputs: Tensor, target: Tensor, noise_radius: Tensor, n_a
             kinks = kinks[(kinks[:, ~support] == 0).all(-1)]
             options.append(fit_features(masked @ kinks.T, kinks, masked, target, noise_radius, n_actions=n_actions))
     candidates, extremes = [], observed_extremes(target, noise_radius, d)
+    resolved = noise_radius.clamp_min(RESOLUTION * (target.amax() - target.amin()))  # the bound's w̄
     for option in options:
         residual = target - feature_values(inputs, option) @ option.coefficients  # what the features leave
         for allowed in (axes & inside, inside):  # splits along the inputs only, or also the pairs
@@ -290,10 +291,20 @@ def _output_candidates(inputs: Tensor, target: Tensor, noise_radius: Tensor, n_a
             spans = [prediction_range(inputs, lo, hi, theta[:, 0], option, support, directions) if plateau else None
                      for (lo, hi, *_), (theta, _) in zip(boxes, fits)]
             for weights in (relevance.clamp_min(floor) * support for floor in METRIC_FLOORS):
-                parts = _output_cells(inputs, boxes, fits, noise_radius, weights, option, margin, spans, extremes)
+                parts = _output_cells(inputs, boxes, fits, resolved, weights, option, margin, spans, extremes)
                 parts[2] = torch.cat((parts[2], option.coefficients.expand(parts[2].shape[0], -1)), dim=-1)
                 candidates.append((parts, weights, option))
     return candidates
+
+
+RESOLUTION = 1e-5
+"""The least noise radius of an output's bound, as a share of the range of its values in the data. A noise-free
+output (a position advanced by the velocity) is fitted as exactly as the hinges' kinks are found, and an optimiser
+finds those to about a millionth of the range: the capped servo's position kinks at ``u - v = 0.500002`` for
+``0.5``. Between the fitted and the true kink there is then no data point to show the model's miss, about 1e-7 m;
+with no noise the bound had no slack for it, and 23 of 100,000 worst-noise queries of the servo's 2,000-step model
+(one of its fits, :func:`~torchrl_brsl.reach.evaluation.worst_noise_outside`) fell 1e-8 m beyond position bounds of
+1.3e-8 m. Outputs with noise are not touched (their ``w̄`` is a thousandth of their range or more)."""
 
 
 SELECTION_NEIGHBOURS = 8
