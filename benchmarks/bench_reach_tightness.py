@@ -10,7 +10,7 @@ their sets, plans claimed (inside the data's cells), and the time of one plan's 
 heading also get the local model fitted in the body frame (``body``, :class:`BodyFrame`). ``1-step worst``: one-step
 sets from 20,000 random states of the same region and actions (``--queries``), their true successors with the noise at
 every vertex of ``W`` (:func:`worst_noise_outside`, the claim itself at each input), successors outside over queries
-claimed. ``--held-out-folds K``
+claimed. ``fit s``: the fit's seconds (one thread). ``--held-out-folds K``
 adds each local model fitted with ``held_out_folds=K`` (its leaves widened where held-out transitions fell outside).
 
 Usage: ``python benchmarks/bench_reach_tightness.py [--quick] [--compile] [--systems bicycle,...] [--data 500,2000]
@@ -49,6 +49,7 @@ def measure(system, num: int, model: str, samples: int, repeats: int, compiled: 
     gen = torch.Generator().manual_seed(0)
     x, xp, u = system.offline_data(num, gen)
     kind, _, folds = model.partition("+")
+    start = time.perf_counter()
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=".*held-out transitions fell outside")
         reach = DataDrivenReach.fit(x, xp, u, system.noise,
@@ -56,6 +57,7 @@ def measure(system, num: int, model: str, samples: int, repeats: int, compiled: 
                                     method="global" if kind == "global" else "local", max_generators=24,
                                     body_frame=system.body_frame if kind == "body" else None,
                                     held_out_folds=int(folds or 0))
+    fit_seconds = time.perf_counter() - start
     if compiled and kind != "global":
         reach.compile_steps()
     center, half = (system.state_low + system.state_high) / 2, (system.state_high - system.state_low) / 2
@@ -68,7 +70,7 @@ def measure(system, num: int, model: str, samples: int, repeats: int, compiled: 
     worst, claimed = worst_noise_outside(reach, system.dynamics, states, system.sample_actions(queries, generator=gen))
     return {"ratio": result.median_ratio, "outside": result.violations, "checked": result.checked,
             "worst": int(worst[claimed].sum()), "queries": int(claimed.sum()),
-            "claimed": int(result.covered.sum()), "ms": plan_time_ms(reach, system, 1, repeats),
+            "claimed": int(result.covered.sum()), "fit": fit_seconds, "ms": plan_time_ms(reach, system, 1, repeats),
             "ms64": plan_time_ms(reach, system, 64, max(repeats // 10, 2))}
 
 
@@ -96,7 +98,7 @@ def main() -> None:
     torch.set_num_threads(1)
     samples, repeats = (60, 5) if args.quick else (300, 50)
     print(f"{'system':<18}{'data':>6}{'model':>8}{'width/spread':>14}{'outside':>16}{'claimed':>9}"
-          f"{'1-step worst':>16}{'ms/plan':>9}{'ms/plan@64':>12}")
+          f"{'1-step worst':>16}{'ms/plan':>9}{'ms/plan@64':>12}{'fit s':>7}")
     for name in args.systems.split(","):
         system = SYSTEMS[name]()
         for num in (int(n) for n in args.data.split(",")):
@@ -108,7 +110,7 @@ def main() -> None:
             for method, row in rows.items():
                 print(f"{name:<18}{num:>6}{method:>8}{row['ratio']:>14.2f}{row['outside']:>8}/{row['checked']:<7}"
                       f"{row['claimed']:>6}/20{row['worst']:>8}/{row['queries']:<7}{row['ms']:>9.3f}"
-                      f"{row['ms64']:>12.4f}")
+                      f"{row['ms64']:>12.4f}{row['fit']:>7.1f}")
             best = models[-1].partition("+")[0]
             print(f"{'':<24}{best}/global width {rows[best]['ratio'] / rows['global']['ratio']:.2f}, "
                   f"time {rows[best]['ms'] / rows['global']['ms']:.1f}x")
