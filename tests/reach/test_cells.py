@@ -76,9 +76,10 @@ def test_starts_near_the_data_edges_are_sound_with_sparse_hinges(monkeypatch):
 
 def test_the_end_span_keeps_a_hinge_off_the_braking_corner(monkeypatch):
     """Data seed 5 (500 steps): refined without the end span (:func:`~torchrl_brsl.reach.hinges.refine_hinges`), the
-    speed hinge left 2 points on its side, in the corner where the speed clips at 0 under hard braking, and the model
-    put the stopped bicycle up to 0.06 m/s beyond its bound: 131 and 912 of 10,000 sampled states from edge starts fell
-    outside (plan seeds 2, 3), 0 with the end span. Both without the range error, which covers this corner too.
+    speed hinge left a few points on its side, in the corner where the speed clips at 0 under hard braking, and the
+    model put the stopped bicycle up to 0.06 m/s beyond its bound: 131 and 912 of 10,000 sampled states from edge
+    starts fell outside (plan seeds 2, 3), 0 with the end span. Both without the range error, which covers this
+    corner too.
     (Plan seed 1 lets 27 out either way: at the heading's first step at full steer and 1.2 m/s, docs/limits.md.)"""
     without_range_error(monkeypatch)
     system = KinematicBicycle()
