@@ -150,6 +150,16 @@ def test_a_noise_free_output_keeps_a_resolution_for_its_misplaced_kinks(monkeypa
     assert leaks() > 0, "without the floor, the sampling should catch the misplaced kink"
 
 
+def test_a_fit_shows_its_progress_over_the_outputs_and_fits_the_same_model(capsys):
+    """``progress=True`` draws a bar over the outputs (one per state dim) on stderr and changes nothing else."""
+    system = DoubleIntegrator()
+    quiet = fit(system, 300)
+    assert "local model" not in capsys.readouterr().err
+    shown = fit(system, 300, progress=True)
+    assert "local model" in capsys.readouterr().err.replace("\r", "\n").splitlines()[-1]
+    assert torch.equal(quiet.cell_errors, shown.cell_errors) and torch.equal(quiet.cell_slopes, shown.cell_slopes)
+
+
 def test_only_a_plateau_in_the_data_bounds_an_output():
     """More than ``d + 1`` points within ``2 w̄`` of the least (largest) value make it a bound; a lone extreme does
     not."""

@@ -56,6 +56,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 from torch import Tensor
+from tqdm.auto import tqdm
 
 from torchrl_brsl._compiling import small_matmul
 from torchrl_brsl.reach.hinges import Features, feature_values, fit_features, product_relaxation
@@ -179,7 +180,7 @@ def tree_nodes(features: Tensor, inputs: Tensor, target: Tensor, leaf_size: int,
 
 def fit_cells(inputs: Tensor, targets: Tensor, noise_radius: Tensor, n_actions: int, *, scale: Tensor | None = None,
               leaf_size: int | None = None, overlap: float = 0.15, extend: float = 0.25,
-              lipschitz_margin: float = 1.0, use_features: bool = True) -> Cells:
+              lipschitz_margin: float = 1.0, use_features: bool = True, progress: bool = False) -> Cells:
     """Fit local affine models and their error intervals, one tree of cells per output.
 
     Per output, the target is offered without features and with two sets of fitted features
@@ -212,6 +213,7 @@ def fit_cells(inputs: Tensor, targets: Tensor, noise_radius: Tensor, n_actions: 
         use_features: offer each output its hinge and product features
             (:func:`~torchrl_brsl.reach.hinges.fit_features`, kept where the probe error says they
             help); ``False``: leaves affine in ``z`` only.
+        progress: show a progress bar over the outputs (a fit takes seconds to minutes).
 
     Returns:
         The stacked :class:`Cells`, root first for every output.
@@ -228,7 +230,7 @@ def fit_cells(inputs: Tensor, targets: Tensor, noise_radius: Tensor, n_actions: 
     grid = (directions, features, kink_sets, axes)
     sizes = (leaf_size, overlap, extend, lipschitz_margin)
     per_output, chosen, fitted = [], [], []
-    for k in range(targets.shape[1]):
+    for k in tqdm(range(targets.shape[1]), desc="local model", unit="output", disable=not progress):
         support = select_inputs(inputs, targets[:, k])
         supports = [torch.ones_like(support)] + ([support] if 0 < int(support.sum()) < d else [])
         candidates = [candidate for inputs_of in supports for candidate in _output_candidates(

@@ -100,7 +100,7 @@ class DataDrivenReach(nn.Module):
             max_generators: int | None = None, n_neighbors: int = 10, lipschitz_margin: float | None = None,
             domain: tuple | str | None = None, method: str = "local", leaf_size: int | None = None,
             overlap: float = 0.15, extend: float = 0.25, features: bool = True, body_frame: BodyFrame | None = None,
-            held_out_folds: int = 0, dtype: torch.dtype = torch.float64) -> DataDrivenReach:
+            held_out_folds: int = 0, progress: bool = False, dtype: torch.dtype = torch.float64) -> DataDrivenReach:
         """Fit the model and its error zonotope from offline transitions.
 
         Args:
@@ -143,6 +143,7 @@ class DataDrivenReach(nn.Module):
                 sampled states outside the example bicycle's sets from starts near the data's edges from
                 182 to 0 of 60,000 in one draw (at 1.1x their width) and from 259 to 174 in three others,
                 and left the capped quadrotor's (6 of 4,389): most lie where no held-out transition does.
+            progress: ``method="local"``: show a progress bar over the outputs' fits.
             dtype: computation dtype (float64 by default).
         """
         if method not in METHODS:
@@ -232,7 +233,7 @@ class DataDrivenReach(nn.Module):
                 local_select[[d for pair in body_frame.rotated_pairs for d in pair]] = 0.0  # added after the rotation
             options = dict(scale=scale, leaf_size=leaf_size, overlap=overlap, extend=extend,
                            lipschitz_margin=lipschitz_margin, use_features=features)
-            cells = fit_cells(scaled, target, noise_radius, m, **options)
+            cells = fit_cells(scaled, target, noise_radius, m, progress=progress, **options)
             if held_out_folds:
                 cells = _widened(cells, *held_out_factors(cells, scaled, target, noise_radius, m, held_out_folds,
                                                           torch.Generator().manual_seed(0), **options))
@@ -250,7 +251,8 @@ class DataDrivenReach(nn.Module):
                  progress: bool = False, generator: torch.Generator | None = None, **kwargs) -> DataDrivenReach:
         """Collect ``steps`` random-input transitions in ``env`` (an empty copy of the task) and fit.
 
-        ``generator`` draws the random inputs (:func:`collect_offline_data`); ``kwargs`` go to :meth:`fit`.
+        ``generator`` draws the random inputs (:func:`collect_offline_data`); ``progress`` shows the collection's and
+        the fit's progress; ``kwargs`` go to :meth:`fit`.
 
         Examples:
             >>> info = envs.safety_info("diffdrive_nav")
@@ -262,7 +264,7 @@ class DataDrivenReach(nn.Module):
 
         data = collect_offline_data(env, steps, state_key=state_key, action_key=action_key, progress=progress,
                                     generator=generator)
-        return cls.from_data(data, noise, **kwargs)
+        return cls.from_data(data, noise, progress=progress, **kwargs)
 
     # ----------------------------------------------------------------- properties
     @property
