@@ -150,6 +150,24 @@ def test_a_noise_free_output_keeps_a_resolution_for_its_misplaced_kinks(monkeypa
     assert leaks() > 0, "without the floor, the sampling should catch the misplaced kink"
 
 
+def test_leaf_vertices_are_the_corners_and_where_the_crossing_kinks_meet_the_faces():
+    """A unit box cut by a face along ``z_0 + z_1 <= 1.5`` and a kink ``z_0 = 0.5``: the region's 5 corners and the
+    kink's end on the lower face (its upper end is a corner); a kink beyond the box (``z_1 = 2``) adds none, and an
+    input outside the support sits at the middle of its range."""
+    directions = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 1.0, 0.0]],
+                              dtype=torch.float64)
+    low = torch.tensor([0.0, 0.0, 0.0, -torch.inf], dtype=torch.float64)
+    high = torch.tensor([1.0, 1.0, 2.0, 1.5], dtype=torch.float64)
+    lo, hi = low[:3], high[:3]
+    kinks = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], dtype=torch.float64)
+    support = torch.tensor([True, True, False])
+    knots = torch.tensor([0.5, 2.0], dtype=torch.float64)
+    z = cells.leaf_vertices(lo, hi, low, high, directions, support, kinks, knots)
+    expected = {(0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (1.0, 0.5), (0.5, 1.0), (0.5, 0.0)}
+    assert {tuple(round(v, 9) + 0.0 for v in point[:2].tolist()) for point in z} == expected
+    assert torch.equal(z[:, 2], torch.ones(len(z), dtype=torch.float64))
+
+
 def test_a_fit_shows_its_progress_over_the_outputs_and_fits_the_same_model(capsys):
     """``progress=True`` draws a bar over the outputs (one per state dim) on stderr and changes nothing else."""
     system = DoubleIntegrator()
