@@ -166,6 +166,10 @@ def test_leaf_vertices_are_the_corners_and_where_the_crossing_kinks_meet_the_fac
     expected = {(0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (1.0, 0.5), (0.5, 1.0), (0.5, 0.0)}
     assert {tuple(round(v, 9) + 0.0 for v in point[:2].tolist()) for point in z} == expected
     assert torch.equal(z[:, 2], torch.ones(len(z), dtype=torch.float64))
+    box = torch.ones(9, dtype=torch.float64)  # 18 faces in 9 inputs: 48,620 choices (a grid of 18^9 would not fit)
+    corners = cells.leaf_vertices(-box, box, -box, box, torch.eye(9, dtype=torch.float64), box > 0,
+                                  torch.zeros(0, 9, dtype=torch.float64), torch.zeros(0, dtype=torch.float64))
+    assert corners.shape == (512, 9) and bool((corners.abs() == 1).all())
 
 
 def test_a_fit_shows_its_progress_over_the_outputs_and_fits_the_same_model(capsys):

@@ -49,6 +49,7 @@ it too can hide below the noise.
 """
 from __future__ import annotations
 
+import itertools
 import math
 from typing import NamedTuple
 
@@ -539,7 +540,8 @@ def leaf_vertices(lo: Tensor, hi: Tensor, low: Tensor, high: Tensor, directions:
     values = torch.cat((face_bounds, hinge_knots[kinks]))
     if len(free) == 0 or math.comb(len(planes), len(free)) > RANGE_VERTEX_SYSTEMS:
         return lo.new_zeros(0, len(lo))
-    choice = torch.combinations(torch.arange(len(planes)), len(free)).reshape(-1, len(free))
+    # (torch.combinations builds the whole grid of len(planes) ** len(free) index tuples first)
+    choice = torch.tensor(list(itertools.combinations(range(len(planes)), len(free))), dtype=torch.long)
     solution, info = torch.linalg.solve_ex(planes[choice], values[choice])
     points = solution[(info == 0) & torch.isfinite(solution).all(-1)]
     inside = (points @ face_rows.T <= face_bounds + 1e-9 * (1 + face_bounds.abs())).all(-1)
