@@ -279,6 +279,7 @@ def _output_candidates(inputs: Tensor, target: Tensor, noise_radius: Tensor, n_a
             kinks = kinks[(kinks[:, ~support] == 0).all(-1)]
             options.append(fit_features(masked @ kinks.T, kinks, masked, target, noise_radius, n_actions=n_actions))
     candidates, extremes = [], observed_extremes(target, noise_radius, d)
+    plateau = bool(torch.isfinite(extremes[0]) or torch.isfinite(extremes[1]))  # else no range error to check
     resolved = noise_radius.clamp_min(RESOLUTION * (target.amax() - target.amin()))  # the bound's w̄
     for option in options:
         residual = target - feature_values(inputs, option) @ option.coefficients  # what the features leave
@@ -290,7 +291,6 @@ def _output_candidates(inputs: Tensor, target: Tensor, noise_radius: Tensor, n_a
             for theta, _ in fits:  # a zeroed input's slope, exactly (the curvature floor of any other is infinite)
                 theta[1:][~support] = 0.0
             relevance = input_relevance(torch.stack([theta[1:] for theta, _ in fits]), floor=0.0)[0]
-            plateau = bool(torch.isfinite(extremes[0]) or torch.isfinite(extremes[1]))
             spans = [prediction_range(inputs, lo, hi, theta[:, 0], option, support, directions) if plateau else None
                      for (lo, hi, *_), (theta, _) in zip(boxes, fits)]
             for weights in (relevance.clamp_min(floor) * support for floor in METRIC_FLOORS):
