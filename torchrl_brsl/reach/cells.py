@@ -43,7 +43,9 @@ of that order) and which keeps the intersection from claiming an exact value whe
 data are merely consistent with one (a noise-free output, such as a position, would
 otherwise get ``L = 0`` from data that never show its variation); nor below half the change
 of the fitted slope to a touching leaf (:func:`curvature_floor`), the curvature that noise of
-the same size hides from the pairs. Where hinges of one sign cut a smooth bend into pieces, the
+the same size hides from the pairs; nor below the slope that a quadratic fitted to the leaf's
+residual reaches over its box (:func:`slope_reach`), which extends beyond the data where the pairs
+lie. Where hinges of one sign cut a smooth bend into pieces, the
 bend's stray from them between their knots is added to the leaf's error (:func:`bend_error`):
 it too can hide below the noise.
 """
@@ -419,8 +421,10 @@ def _output_cells(inputs: Tensor, boxes: list[tuple], fits: list[tuple], noise_r
     floors = curvature_floor(low, high, torch.stack([theta[1:, 0] for theta, _ in fits]), weights)
     bends = bend_error(low[:, :inputs.shape[1]], high[:, :inputs.shape[1]], option)
     for leaf, ((lo, hi, fit, index), (theta, residual)) in enumerate(zip(boxes, fits)):
+        floor = torch.maximum(floors[leaf], slope_reach(inputs[fit], residual[:, 0], weights, lo[:len(weights)],
+                                                        hi[:len(weights)], noise_radius))
         errors, centre, lipschitz, delta = _bound_cell(inputs[fit], residual[:, 0], noise_radius, weights, margin,
-                                                       floors[leaf])
+                                                       floor)
         errors = torch.maximum(errors + bends[leaf], range_error(spans[leaf], centre, noise_radius, *extremes))
         cells.append((lo, hi, theta[1:, 0], theta[0, 0] + centre, errors, lipschitz, delta,
                       errors / noise_radius.clamp_min(1e-12)))
@@ -571,6 +575,70 @@ def curvature_floor(low: Tensor, high: Tensor, slopes: Tensor, weights: Tensor) 
     change = slopes.unsqueeze(1) - slopes.unsqueeze(0)  # an input of weight 0 has no slope (else: no bound)
     ratio = torch.where(weights > 0, change / (2 * weights).clamp_min(1e-300), torch.where(change != 0, torch.inf, 0.0))
     return torch.where(touching, ratio.norm(dim=-1), 0.0).amax(-1)
+
+
+QUADRATIC_POINTS = 3
+"""A leaf fits :func:`slope_reach`'s quadratic surrogate when it holds at least this many points per coefficient."""
+
+QUADRATIC_INPUTS = 8
+""":func:`slope_reach` looks at leaves of at most this many inputs of positive weight (``2^k`` corners)."""
+
+SLOPE_SIGNIFICANCE = 2.0
+"""Standard errors that :func:`slope_reach` takes off each entry of a corner's gradient, at least."""
+
+
+def slope_reach(z: Tensor, residual: Tensor, weights: Tensor, lo: Tensor, hi: Tensor, noise_radius: Tensor) -> Tensor:
+    """A lower bound on one leaf's residual Lipschitz constant from a quadratic fit: a scalar.
+
+    The pairwise estimate of :func:`_bound_cell` sees the residual's slope between the leaf's data
+    points only; the leaf's box reaches beyond them (to the extended edge of the data), where a
+    smooth curvature keeps steepening the residual. Fitted by least squares on the leaf's points
+    (the inputs of positive weight and all their products), a quadratic ``q`` has an affine gradient,
+    so its largest dual norm ``||∇q / w||`` over the box is attained at a corner: the slope that the
+    curvature the data show in the mean, not pair by pair, reaches across the box.
+
+    A leaf of a linear system fits curvature to its noise. Each entry of a corner's gradient
+    therefore counts only beyond ``t`` of its standard error (noise of the variance a uniform
+    ``±w̄`` has): ``t = sqrt(2 ln m)`` for the ``m`` entries over the corners, about the largest of
+    ``m`` standard normal noises, and at least :data:`SLOPE_SIGNIFICANCE`. (A bicycle's heading step
+    ``v tan(steer)`` at full steer and speed, 500 steps: the leaf's pairs gave 0.017, and one-step
+    queries there fell up to 8 % of the noise outside their sets at a vertex of the noise; with the
+    surrogate's slope, none. At ``t = 3`` the surrogate missed that curvature; at ``t = 2`` a double
+    integrator's sets were 14 % wider.) Zero when the leaf holds fewer than
+    :data:`QUADRATIC_POINTS` points per coefficient or more than :data:`QUADRATIC_INPUTS` inputs.
+
+    Args:
+        z: ``[s, d]`` the leaf's scaled inputs; ``residual``: ``[s]`` its affine fit's residual.
+        weights: ``[d]`` the output's metric weights; ``lo``, ``hi``: ``[d]`` the leaf's box.
+        noise_radius: ``w̄`` of the output, a scalar.
+
+    Examples:
+        >>> z = torch.rand(60, 2, dtype=torch.float64)
+        >>> one, none = torch.ones(2, dtype=torch.float64), torch.tensor(0.0, dtype=torch.float64)
+        >>> round(float(slope_reach(z, z[:, 0] ** 2, one, 0 * one, one, none)), 6)  # d/dz0 of z0² at z0 = 1
+        2.0
+    """
+    active = (weights > 0).nonzero().flatten()
+    k = len(active)
+    pairs = torch.triu_indices(k, k)
+    if not 0 < k <= QUADRATIC_INPUTS or len(z) < QUADRATIC_POINTS * (1 + k + pairs.shape[1]):
+        return residual.new_zeros(())
+    centre, half = (lo[active] + hi[active]) / 2, ((hi[active] - lo[active]) / 2).clamp_min(1e-12)
+    u = (z[:, active] - centre) / half  # the box as [-1, 1]^k, for conditioning
+    regressors = torch.cat((torch.ones_like(u[:, :1]), u, u[:, pairs[0]] * u[:, pairs[1]]), dim=1)
+    theta = torch.linalg.lstsq(regressors, residual.unsqueeze(-1), driver="gelsd").solution[:, 0]
+    corners = torch.tensor(list(itertools.product((-1.0, 1.0), repeat=k)), dtype=u.dtype)  # [2^k, k]
+    # the gradient at each corner is linear in theta: d q / d u_i = theta_i + sum over pairs holding i
+    gradient_map = u.new_zeros(len(corners), k, len(theta))
+    gradient_map[:, torch.arange(k), 1 + torch.arange(k)] = 1.0
+    for column, (i, j) in enumerate(pairs.T.tolist()):
+        gradient_map[:, i, 1 + k + column] += corners[:, j]
+        gradient_map[:, j, 1 + k + column] += corners[:, i]
+    covariance = torch.linalg.pinv(regressors.T @ regressors) * noise_radius ** 2 / 3
+    error = torch.einsum("cip,pq,ciq->ci", gradient_map, covariance, gradient_map).clamp_min(0).sqrt()
+    significance = max(math.sqrt(2 * math.log(error.numel())), SLOPE_SIGNIFICANCE)
+    gradient = ((gradient_map @ theta).abs() - significance * error).clamp_min(0) / half  # per unit of z
+    return (gradient / weights[active]).norm(dim=-1).amax()
 
 
 CHAIN_COSINE = 0.95
