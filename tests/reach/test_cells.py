@@ -270,7 +270,8 @@ def test_the_leaves_slope_reach_covers_the_bicycles_heading_at_full_steer_and_sp
 
 def test_slope_reach_is_the_steepest_gradient_of_an_exact_quadratic_over_the_box():
     """On an exact quadratic residual the surrogate is exact: ``r = z0 z1 + z0²`` over ``[0, 1]²`` has its steepest
-    gradient ``(2 z0 + z1, z0) = (3, 1)`` at the corner ``(1, 1)``; a weight divides its input's slope."""
+    gradient ``(2 z0 + z1, z0) = (3, 1)`` at the corner ``(1, 1)``; a weight divides its input's slope. Too few
+    points, or points on a curve (a heading's cos and sin), give no surrogate."""
     gen = torch.Generator().manual_seed(0)
     z = torch.rand(60, 2, generator=gen, dtype=torch.float64)
     residual = z[:, 0] * z[:, 1] + z[:, 0] ** 2
@@ -281,6 +282,10 @@ def test_slope_reach_is_the_steepest_gradient_of_an_exact_quadratic_over_the_box
     weighted = cells.slope_reach(z, residual, torch.tensor([0.5, 1.0], dtype=torch.float64), lo, hi, none)
     torch.testing.assert_close(weighted, torch.tensor(37.0, dtype=torch.float64).sqrt())  # (3 / 0.5, 1)
     assert cells.slope_reach(z[:10], residual[:10], torch.ones(2, dtype=torch.float64), lo, hi, none) == 0  # too few
+    heading = torch.rand(60, generator=gen, dtype=torch.float64) * 6.28  # (cos, sin) on the circle: no quadratic
+    circle = torch.stack((heading.cos(), heading.sin()), -1)
+    assert cells.slope_reach(circle, circle[:, 0] * circle[:, 1], torch.ones(2, dtype=torch.float64), -1.25 * hi,
+                             1.25 * hi, none) == 0
 
 
 def test_the_curvature_floor_ignores_inputs_of_weight_zero_without_a_slope():

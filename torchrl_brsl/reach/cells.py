@@ -44,8 +44,8 @@ data are merely consistent with one (a noise-free output, such as a position, wo
 otherwise get ``L = 0`` from data that never show its variation); nor below half the change
 of the fitted slope to a touching leaf (:func:`curvature_floor`), the curvature that noise of
 the same size hides from the pairs; nor below the slope that a quadratic fitted to the leaf's
-residual reaches over its box (:func:`slope_reach`), which extends beyond the data where the pairs
-lie. Where hinges of one sign cut a smooth bend into pieces, the
+residual reaches over its box (:func:`slope_reach`): the box extends beyond the data, between whose
+pairs the estimate looks. Where hinges of one sign cut a smooth bend into pieces, the
 bend's stray from them between their knots is added to the leaf's error (:func:`bend_error`):
 it too can hide below the noise.
 """
@@ -583,6 +583,9 @@ QUADRATIC_POINTS = 3
 QUADRATIC_INPUTS = 8
 """:func:`slope_reach` looks at leaves of at most this many inputs of positive weight (``2^k`` corners)."""
 
+QUADRATIC_CONDITION = 1e-3
+""":func:`slope_reach` needs its design's singular values within this ratio of the largest."""
+
 SLOPE_SIGNIFICANCE = 2.0
 """Standard errors that :func:`slope_reach` takes off each entry of a corner's gradient, at least."""
 
@@ -605,7 +608,11 @@ def slope_reach(z: Tensor, residual: Tensor, weights: Tensor, lo: Tensor, hi: Te
     queries there fell up to 8 % of the noise outside their sets at a vertex of the noise; with the
     surrogate's slope, none. At ``t = 3`` the surrogate missed that curvature; at ``t = 2`` a double
     integrator's sets were 14 % wider.) Zero when the leaf holds fewer than
-    :data:`QUADRATIC_POINTS` points per coefficient or more than :data:`QUADRATIC_INPUTS` inputs.
+    :data:`QUADRATIC_POINTS` points per coefficient or more than :data:`QUADRATIC_INPUTS` inputs, and
+    where the design is degenerate (:data:`QUADRATIC_CONDITION`): data on a curve, such as a heading's
+    ``cos θ`` and ``sin θ`` (``cos² + sin² = 1``), leave the quadratic unidentified, and its slope at the
+    box's corners, far off the curve, is noise (15 times the pairs' on a world-frame Turtlebot, whose
+    layer it froze).
 
     Args:
         z: ``[s, d]`` the leaf's scaled inputs; ``residual``: ``[s]`` its affine fit's residual.
@@ -626,6 +633,9 @@ def slope_reach(z: Tensor, residual: Tensor, weights: Tensor, lo: Tensor, hi: Te
     centre, half = (lo[active] + hi[active]) / 2, ((hi[active] - lo[active]) / 2).clamp_min(1e-12)
     u = (z[:, active] - centre) / half  # the box as [-1, 1]^k, for conditioning
     regressors = torch.cat((torch.ones_like(u[:, :1]), u, u[:, pairs[0]] * u[:, pairs[1]]), dim=1)
+    singular = torch.linalg.svdvals(regressors)
+    if singular[-1] < QUADRATIC_CONDITION * singular[0]:  # data on a curve (a heading's cos, sin): no quadratic
+        return residual.new_zeros(())
     theta = torch.linalg.lstsq(regressors, residual.unsqueeze(-1), driver="gelsd").solution[:, 0]
     corners = torch.tensor(list(itertools.product((-1.0, 1.0), repeat=k)), dtype=u.dtype)  # [2^k, k]
     # the gradient at each corner is linear in theta: d q / d u_i = theta_i + sum over pairs holding i
