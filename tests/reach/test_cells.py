@@ -275,17 +275,17 @@ def test_slope_reach_is_the_steepest_gradient_of_an_exact_quadratic_over_the_box
     gen = torch.Generator().manual_seed(0)
     z = torch.rand(60, 2, generator=gen, dtype=torch.float64)
     residual = z[:, 0] * z[:, 1] + z[:, 0] ** 2
-    lo, hi = torch.zeros(2, dtype=torch.float64), torch.ones(2, dtype=torch.float64)
-    none = torch.tensor(0.0, dtype=torch.float64)
-    reach = cells.slope_reach(z, residual, torch.ones(2, dtype=torch.float64), lo, hi, none)
-    torch.testing.assert_close(reach, torch.tensor(10.0, dtype=torch.float64).sqrt())
-    weighted = cells.slope_reach(z, residual, torch.tensor([0.5, 1.0], dtype=torch.float64), lo, hi, none)
+    one, none = torch.ones(2, dtype=torch.float64), torch.tensor(0.0, dtype=torch.float64)
+    slopes = cells.corner_slopes(z, residual, one > 0, 0 * one, one, none)
+    torch.testing.assert_close(cells.slope_reach(slopes, one), torch.tensor(10.0, dtype=torch.float64).sqrt())
+    weighted = cells.slope_reach(slopes, torch.tensor([0.5, 1.0], dtype=torch.float64))
     torch.testing.assert_close(weighted, torch.tensor(37.0, dtype=torch.float64).sqrt())  # (3 / 0.5, 1)
-    assert cells.slope_reach(z[:10], residual[:10], torch.ones(2, dtype=torch.float64), lo, hi, none) == 0  # too few
+    assert cells.corner_slopes(z[:10], residual[:10], one > 0, 0 * one, one, none).shape[0] == 0  # too few
     heading = torch.rand(60, generator=gen, dtype=torch.float64) * 6.28  # (cos, sin) on the circle: no quadratic
     circle = torch.stack((heading.cos(), heading.sin()), -1)
-    assert cells.slope_reach(circle, circle[:, 0] * circle[:, 1], torch.ones(2, dtype=torch.float64), -1.25 * hi,
-                             1.25 * hi, none) == 0
+    on_circle = cells.corner_slopes(circle, circle[:, 0] * circle[:, 1], one > 0, -1.25 * one, 1.25 * one, none)
+    assert on_circle.shape[0] == 0
+    assert cells.slope_reach(z.new_zeros(0, 2), one) == 0
 
 
 def test_the_curvature_floor_ignores_inputs_of_weight_zero_without_a_slope():

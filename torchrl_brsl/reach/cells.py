@@ -44,10 +44,10 @@ data are merely consistent with one (a noise-free output, such as a position, wo
 otherwise get ``L = 0`` from data that never show its variation); nor below half the change
 of the fitted slope to a touching leaf (:func:`curvature_floor`), the curvature that noise of
 the same size hides from the pairs; nor below the slope that a quadratic fitted to the leaf's
-residual reaches over its box (:func:`slope_reach`): the box extends beyond the data, between whose
-pairs the estimate looks. Where hinges of one sign cut a smooth bend into pieces, the
-bend's stray from them between their knots is added to the leaf's error (:func:`bend_error`):
-it too can hide below the noise.
+residual reaches over its box (:func:`corner_slopes`, :func:`slope_reach`): the box extends beyond
+the data, between whose pairs the estimate looks. Where hinges of one sign cut a smooth bend into
+pieces, the bend's stray from them between their knots is added to the leaf's error
+(:func:`bend_error`): it too can hide below the noise.
 """
 from __future__ import annotations
 
@@ -295,8 +295,10 @@ def _output_candidates(inputs: Tensor, target: Tensor, noise_radius: Tensor, n_a
             relevance = input_relevance(torch.stack([theta[1:] for theta, _ in fits]), floor=0.0)[0]
             spans = [prediction_range(inputs, lo, hi, theta[:, 0], option, support, directions) if plateau else None
                      for (lo, hi, *_), (theta, _) in zip(boxes, fits)]
+            slopes = [corner_slopes(inputs[fit], residual[:, 0], support, lo[:d], hi[:d], resolved)
+                      for (lo, hi, fit, _), (_, residual) in zip(boxes, fits)]
             for weights in (relevance.clamp_min(floor) * support for floor in METRIC_FLOORS):
-                parts = _output_cells(inputs, boxes, fits, resolved, weights, option, margin, spans, extremes)
+                parts = _output_cells(inputs, boxes, fits, resolved, weights, option, margin, (spans, slopes), extremes)
                 parts[2] = torch.cat((parts[2], option.coefficients.expand(parts[2].shape[0], -1)), dim=-1)
                 candidates.append((parts, weights, option))
     return candidates
@@ -411,18 +413,19 @@ def _cell_boxes(features: Tensor, root: Tensor, leaves: list[tuple], overlap: fl
 
 
 def _output_cells(inputs: Tensor, boxes: list[tuple], fits: list[tuple], noise_radius: Tensor, weights: Tensor,
-                  option: Features, margin: float, spans: list[Tensor | None],
+                  option: Features, margin: float, per_leaf: tuple[list, list[Tensor]],
                   extremes: tuple[Tensor, Tensor]) -> list[Tensor]:
     """The stacked cells of one output in the metric ``weights``, on the features ``option``: the fields of
-    :class:`Cells` from ``low`` to ``score``, then ``members`` ``[N]``. ``spans``: each leaf's
-    :func:`prediction_range` (``None``: not needed), ``extremes``: :func:`observed_extremes`."""
+    :class:`Cells` from ``low`` to ``score``, then ``members`` ``[N]``. ``per_leaf``: each leaf's
+    :func:`prediction_range` (``None``: not needed) and :func:`corner_slopes`, ``extremes``:
+    :func:`observed_extremes`."""
+    spans, slopes = per_leaf
     cells, members = [], torch.empty(inputs.shape[0], dtype=torch.long)
     low, high = torch.stack([lo for lo, *_ in boxes]), torch.stack([hi for _, hi, *_ in boxes])
     floors = curvature_floor(low, high, torch.stack([theta[1:, 0] for theta, _ in fits]), weights)
     bends = bend_error(low[:, :inputs.shape[1]], high[:, :inputs.shape[1]], option)
     for leaf, ((lo, hi, fit, index), (theta, residual)) in enumerate(zip(boxes, fits)):
-        floor = torch.maximum(floors[leaf], slope_reach(inputs[fit], residual[:, 0], weights, lo[:len(weights)],
-                                                        hi[:len(weights)], noise_radius))
+        floor = torch.maximum(floors[leaf], slope_reach(slopes[leaf], weights))
         errors, centre, lipschitz, delta = _bound_cell(inputs[fit], residual[:, 0], noise_radius, weights, margin,
                                                        floor)
         errors = torch.maximum(errors + bends[leaf], range_error(spans[leaf], centre, noise_radius, *extremes))
@@ -578,26 +581,26 @@ def curvature_floor(low: Tensor, high: Tensor, slopes: Tensor, weights: Tensor) 
 
 
 QUADRATIC_POINTS = 3
-"""A leaf fits :func:`slope_reach`'s quadratic surrogate when it holds at least this many points per coefficient."""
+"""A leaf fits :func:`corner_slopes`' quadratic surrogate when it holds at least this many points per coefficient."""
 
 QUADRATIC_INPUTS = 8
-""":func:`slope_reach` looks at leaves of at most this many inputs of positive weight (``2^k`` corners)."""
+""":func:`corner_slopes` looks at leaves of at most this many inputs of positive weight (``2^k`` corners)."""
 
 QUADRATIC_CONDITION = 1e-3
-""":func:`slope_reach` needs its design's singular values within this ratio of the largest."""
+""":func:`corner_slopes` needs its design's singular values within this ratio of the largest."""
 
 SLOPE_SIGNIFICANCE = 2.0
-"""Standard errors that :func:`slope_reach` takes off each entry of a corner's gradient, at least."""
+"""Standard errors that :func:`corner_slopes` takes off each entry of a corner's gradient, at least."""
 
 
-def slope_reach(z: Tensor, residual: Tensor, weights: Tensor, lo: Tensor, hi: Tensor, noise_radius: Tensor) -> Tensor:
-    """A lower bound on one leaf's residual Lipschitz constant from a quadratic fit: a scalar.
+def corner_slopes(z: Tensor, residual: Tensor, active: Tensor, lo: Tensor, hi: Tensor, noise_radius: Tensor) -> Tensor:
+    """The slopes of one leaf's quadratic surrogate at the corners of its box, beyond the noise: ``[C, d]``.
 
     The pairwise estimate of :func:`_bound_cell` sees the residual's slope between the leaf's data
     points only; the leaf's box reaches beyond them (to the extended edge of the data), where a
     smooth curvature keeps steepening the residual. Fitted by least squares on the leaf's points
-    (the inputs of positive weight and all their products), a quadratic ``q`` has an affine gradient,
-    so its largest dual norm ``||∇q / w||`` over the box is attained at a corner: the slope that the
+    (the ``active`` inputs and all their products), a quadratic ``q`` has an affine gradient, so its
+    largest dual norm over the box is attained at a corner (:func:`slope_reach`): the slope that the
     curvature the data show in the mean, not pair by pair, reaches across the box.
 
     A leaf of a linear system fits curvature to its noise. Each entry of a corner's gradient
@@ -607,7 +610,7 @@ def slope_reach(z: Tensor, residual: Tensor, weights: Tensor, lo: Tensor, hi: Te
     ``v tan(steer)`` at full steer and speed, 500 steps: the leaf's pairs gave 0.017, and one-step
     queries there fell up to 8 % of the noise outside their sets at a vertex of the noise; with the
     surrogate's slope, none. At ``t = 3`` the surrogate missed that curvature; at ``t = 2`` a double
-    integrator's sets were 14 % wider.) Zero when the leaf holds fewer than
+    integrator's sets were 14 % wider.) No corners (``C = 0``) when the leaf holds fewer than
     :data:`QUADRATIC_POINTS` points per coefficient or more than :data:`QUADRATIC_INPUTS` inputs, and
     where the design is degenerate (:data:`QUADRATIC_CONDITION`): data on a curve, such as a heading's
     ``cos θ`` and ``sin θ`` (``cos² + sin² = 1``), leave the quadratic unidentified, and its slope at the
@@ -616,26 +619,21 @@ def slope_reach(z: Tensor, residual: Tensor, weights: Tensor, lo: Tensor, hi: Te
 
     Args:
         z: ``[s, d]`` the leaf's scaled inputs; ``residual``: ``[s]`` its affine fit's residual.
-        weights: ``[d]`` the output's metric weights; ``lo``, ``hi``: ``[d]`` the leaf's box.
-        noise_radius: ``w̄`` of the output, a scalar.
-
-    Examples:
-        >>> z = torch.rand(60, 2, dtype=torch.float64)
-        >>> one, none = torch.ones(2, dtype=torch.float64), torch.tensor(0.0, dtype=torch.float64)
-        >>> round(float(slope_reach(z, z[:, 0] ** 2, one, 0 * one, one, none)), 6)  # d/dz0 of z0² at z0 = 1
-        2.0
+        active: ``[d]`` the inputs the output is fitted on (positive weight); the others' slopes are 0.
+        lo, hi: ``[d]`` the leaf's box. noise_radius: ``w̄`` of the output, a scalar.
     """
-    active = (weights > 0).nonzero().flatten()
-    k = len(active)
+    index = active.nonzero().flatten()
+    k = len(index)
     pairs = torch.triu_indices(k, k)
+    none = z.new_zeros(0, z.shape[1])
     if not 0 < k <= QUADRATIC_INPUTS or len(z) < QUADRATIC_POINTS * (1 + k + pairs.shape[1]):
-        return residual.new_zeros(())
-    centre, half = (lo[active] + hi[active]) / 2, ((hi[active] - lo[active]) / 2).clamp_min(1e-12)
-    u = (z[:, active] - centre) / half  # the box as [-1, 1]^k, for conditioning
+        return none
+    centre, half = (lo[index] + hi[index]) / 2, ((hi[index] - lo[index]) / 2).clamp_min(1e-12)
+    u = (z[:, index] - centre) / half  # the box as [-1, 1]^k, for conditioning
     regressors = torch.cat((torch.ones_like(u[:, :1]), u, u[:, pairs[0]] * u[:, pairs[1]]), dim=1)
     singular = torch.linalg.svdvals(regressors)
     if singular[-1] < QUADRATIC_CONDITION * singular[0]:  # data on a curve (a heading's cos, sin): no quadratic
-        return residual.new_zeros(())
+        return none
     theta = torch.linalg.lstsq(regressors, residual.unsqueeze(-1), driver="gelsd").solution[:, 0]
     corners = torch.tensor(list(itertools.product((-1.0, 1.0), repeat=k)), dtype=u.dtype)  # [2^k, k]
     # the gradient at each corner is linear in theta: d q / d u_i = theta_i + sum over pairs holding i
@@ -647,8 +645,25 @@ def slope_reach(z: Tensor, residual: Tensor, weights: Tensor, lo: Tensor, hi: Te
     covariance = torch.linalg.pinv(regressors.T @ regressors) * noise_radius ** 2 / 3
     error = torch.einsum("cip,pq,ciq->ci", gradient_map, covariance, gradient_map).clamp_min(0).sqrt()
     significance = max(math.sqrt(2 * math.log(error.numel())), SLOPE_SIGNIFICANCE)
-    gradient = ((gradient_map @ theta).abs() - significance * error).clamp_min(0) / half  # per unit of z
-    return (gradient / weights[active]).norm(dim=-1).amax()
+    slopes = z.new_zeros(len(corners), z.shape[1])
+    slopes[:, index] = ((gradient_map @ theta).abs() - significance * error).clamp_min(0) / half  # per unit of z
+    return slopes
+
+
+def slope_reach(slopes: Tensor, weights: Tensor) -> Tensor:
+    """A lower bound on one leaf's residual Lipschitz constant in the metric ``weights`` ``[d]``: the largest dual
+    norm ``||s / w||`` of its :func:`corner_slopes` ``[C, d]`` (0 without corners); a scalar.
+
+    Examples:
+        >>> z = torch.rand(60, 2, dtype=torch.float64)
+        >>> one, none = torch.ones(2, dtype=torch.float64), torch.tensor(0.0, dtype=torch.float64)
+        >>> slopes = corner_slopes(z, z[:, 0] ** 2, one > 0, 0 * one, one, none)  # d/dz0 of z0² at z0 = 1
+        >>> round(float(slope_reach(slopes, one)), 6), round(float(slope_reach(slopes, 0.5 * one)), 6)
+        (2.0, 4.0)
+    """
+    if slopes.shape[0] == 0:
+        return slopes.new_zeros(())
+    return (slopes / torch.where(weights > 0, weights, 1.0)).norm(dim=-1).amax()
 
 
 CHAIN_COSINE = 0.95
