@@ -298,7 +298,7 @@ def _output_candidates(inputs: Tensor, target: Tensor, noise_radius: Tensor, n_a
             slopes = [corner_slopes(inputs[fit], residual[:, 0], support, lo[:d], hi[:d], resolved)
                       for (lo, hi, fit, _), (_, residual) in zip(boxes, fits)]
             for weights in (relevance.clamp_min(floor) * support for floor in METRIC_FLOORS):
-                parts = _output_cells(inputs, boxes, fits, resolved, weights, option, margin, (spans, slopes), extremes)
+                parts = _output_cells(inputs, boxes, fits, resolved, weights, option, margin, spans, slopes, extremes)
                 parts[2] = torch.cat((parts[2], option.coefficients.expand(parts[2].shape[0], -1)), dim=-1)
                 candidates.append((parts, weights, option))
     return candidates
@@ -413,13 +413,12 @@ def _cell_boxes(features: Tensor, root: Tensor, leaves: list[tuple], overlap: fl
 
 
 def _output_cells(inputs: Tensor, boxes: list[tuple], fits: list[tuple], noise_radius: Tensor, weights: Tensor,
-                  option: Features, margin: float, per_leaf: tuple[list, list[Tensor]],
+                  option: Features, margin: float, spans: list[Tensor | None], slopes: list[Tensor],
                   extremes: tuple[Tensor, Tensor]) -> list[Tensor]:
     """The stacked cells of one output in the metric ``weights``, on the features ``option``: the fields of
-    :class:`Cells` from ``low`` to ``score``, then ``members`` ``[N]``. ``per_leaf``: each leaf's
-    :func:`prediction_range` (``None``: not needed) and :func:`corner_slopes`, ``extremes``:
+    :class:`Cells` from ``low`` to ``score``, then ``members`` ``[N]``. ``spans``: each leaf's
+    :func:`prediction_range` (``None``: not needed), ``slopes``: its :func:`corner_slopes`, ``extremes``:
     :func:`observed_extremes`."""
-    spans, slopes = per_leaf
     cells, members = [], torch.empty(inputs.shape[0], dtype=torch.long)
     low, high = torch.stack([lo for lo, *_ in boxes]), torch.stack([hi for _, hi, *_ in boxes])
     floors = curvature_floor(low, high, torch.stack([theta[1:, 0] for theta, _ in fits]), weights)
@@ -631,10 +630,10 @@ def corner_slopes(z: Tensor, residual: Tensor, active: Tensor, lo: Tensor, hi: T
     centre, half = (lo[index] + hi[index]) / 2, ((hi[index] - lo[index]) / 2).clamp_min(1e-12)
     u = (z[:, index] - centre) / half  # the box as [-1, 1]^k, for conditioning
     regressors = torch.cat((torch.ones_like(u[:, :1]), u, u[:, pairs[0]] * u[:, pairs[1]]), dim=1)
-    singular = torch.linalg.svdvals(regressors)
+    left, singular, right = torch.linalg.svd(regressors, full_matrices=False)
     if singular[-1] < QUADRATIC_CONDITION * singular[0]:  # data on a curve (a heading's cos, sin): no quadratic
         return none
-    theta = torch.linalg.lstsq(regressors, residual.unsqueeze(-1), driver="gelsd").solution[:, 0]
+    theta = right.T @ ((left.T @ residual) / singular)  # least squares
     corners = torch.tensor(list(itertools.product((-1.0, 1.0), repeat=k)), dtype=u.dtype)  # [2^k, k]
     # the gradient at each corner is linear in theta: d q / d u_i = theta_i + sum over pairs holding i
     gradient_map = u.new_zeros(len(corners), k, len(theta))
@@ -642,7 +641,7 @@ def corner_slopes(z: Tensor, residual: Tensor, active: Tensor, lo: Tensor, hi: T
     for column, (i, j) in enumerate(pairs.T.tolist()):
         gradient_map[:, i, 1 + k + column] += corners[:, j]
         gradient_map[:, j, 1 + k + column] += corners[:, i]
-    covariance = torch.linalg.pinv(regressors.T @ regressors) * noise_radius ** 2 / 3
+    covariance = (right.T / singular.square()) @ right * noise_radius ** 2 / 3  # (XᵀX)⁻¹ w̄² / 3
     error = torch.einsum("cip,pq,ciq->ci", gradient_map, covariance, gradient_map).clamp_min(0).sqrt()
     significance = max(math.sqrt(2 * math.log(error.numel())), SLOPE_SIGNIFICANCE)
     slopes = z.new_zeros(len(corners), z.shape[1])
