@@ -1,7 +1,8 @@
 """Per-step latency of the safety layer, beside one env step and one actor forward pass.
 
 ``diffdrive_nav`` (Turtlebot-like) with 10 obstacles in range and ``n_plan = 10``
-(``T = 16`` reachable sets with the braking tail), one CPU thread. Three regimes:
+(``T = 16`` reachable sets with the braking tail; ``--n-plan 1`` is the recipes' default, one action
+then braking, ``T = 7``), one CPU thread. Three regimes:
 
 - safe proposals (no adjustment needed): a gentle constant plan in open space;
 - adjustment: the plan drives at full speed towards a wall, so once the wall is within the
@@ -15,7 +16,7 @@ layer row, the shares of its timed steps that the layer adjusted and verified, t
 failsafe or to ``unverified_hold``, and whose proposal was ``out_of_data``: an adjusting row whose steps
 all end in the failsafe times the adjuster's budget, not its speed. ``--data`` sets the offline steps (the recipes fit
 the Turtlebot's body-frame model from 2,000).
-Usage: ``python benchmarks/bench_layer.py [--quick] [--compile] [--data 500]``
+Usage: ``python benchmarks/bench_layer.py [--quick] [--compile] [--data 500] [--n-plan 10]``
 """
 from __future__ import annotations
 
@@ -37,9 +38,9 @@ METHODS = ("local", "body", "global")
 COMPILED = ("local compiled", "body compiled")
 
 
-def make_layer(reach, info, adjuster):
+def make_layer(reach, info, adjuster, n_plan: int = N_PLAN):
     """The layer with open-loop braking (the zero command, which is this task's braking policy)."""
-    return BRSLSafetyLayer(reach, Failsafe(info.braking_action, info.n_brk), N_PLAN,
+    return BRSLSafetyLayer(reach, Failsafe(info.braking_action, info.n_brk), n_plan,
                            stop_dims=info.velocity_dims, stop_slack=0.15,
                            action_low=info.action_low, action_high=info.action_high, adjuster=adjuster)
 
@@ -67,7 +68,7 @@ def episode_times(layer, steps: int, towards_wall: bool, seed: int,
     times = []
     for _ in range(steps):
         td["obstacles"] = obstacles
-        td["plan"] = torch.tensor([speed] * N_PLAN)
+        td["plan"] = torch.tensor([speed] * layer.n_plan)
         td["action"] = td["plan"][0]
         td = env.step(td)
         times.append(td["next", "brsl", "compute_time"].item())
@@ -101,6 +102,8 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--compile", action="store_true", help="add the local models with compiled steps")
     parser.add_argument("--data", type=int, default=500, help="offline steps")
+    parser.add_argument("--n-plan", type=int, default=N_PLAN,
+                        help="planned steps before braking (1: the recipes' default, one action then braking)")
     args = parser.parse_args()
     torch.set_num_threads(1)
     torch.manual_seed(0)
@@ -119,7 +122,7 @@ def main() -> None:
             reach.compile_steps()
         for name, adjuster in (("safe proposals (no adjustment)", None), ("adjusting every step: projected gradient",
                                GradientAdjuster()), ("adjusting every step: facet-locked QP", FacetQPAdjuster())):
-            layer = make_layer(reach, info, adjuster or GradientAdjuster())
+            layer = make_layer(reach, info, adjuster or GradientAdjuster(), args.n_plan)
             if method in COMPILED:  # compile outside the timing
                 episode_times(layer, 15, adjuster is not None, 0)
             flags = {}
@@ -149,8 +152,8 @@ def main() -> None:
             actor_times.append(time.perf_counter() - start)
     rows["one actor forward (MLP 23-256-256-2)"] = stats(actor_times)
 
-    print(f"{TASK}: {N_OBSTACLES} obstacles, n_plan = {N_PLAN}, n_brk = {info.n_brk}, one CPU thread, {malloc_name()}, "
-          f"{args.data} offline steps; % of the timed steps")
+    print(f"{TASK}: {N_OBSTACLES} obstacles, n_plan = {args.n_plan}, n_brk = {info.n_brk}, one CPU thread, "
+          f"{malloc_name()}, {args.data} offline steps; % of the timed steps")
     print(f"{'':<66}{'median ms':>12}{'p99 ms':>10}{'adjusted':>9}{'failsafe':>9}{'hold':>9}{'no data':>9}")
     for label, (median, p99) in rows.items():
         print(f"{label:<66}{median:>12.3f}{p99:>10.3f}{flag_shares.get(label, '')}")
