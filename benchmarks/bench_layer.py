@@ -38,7 +38,7 @@ METHODS = ("local", "body", "global")
 COMPILED = ("local compiled", "body compiled")
 
 
-def make_layer(reach, info, adjuster, n_plan: int = N_PLAN):
+def make_layer(reach, info, adjuster, n_plan: int):
     """The layer with open-loop braking (the zero command, which is this task's braking policy)."""
     return BRSLSafetyLayer(reach, Failsafe(info.braking_action, info.n_brk), n_plan,
                            stop_dims=info.velocity_dims, stop_slack=0.15,

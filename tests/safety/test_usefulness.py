@@ -79,8 +79,9 @@ def test_a_random_policy_keeps_its_speed_behind_the_local_model(task, body_frame
     out of data) and 0.117 behind the world-frame one, against 0.117 without the layer; ``quadrotor_nav`` 1.92 m/s
     against 1.96 (14 % adjusted), no collision step against 6 without. No failsafe or hold step in any. The
     world-frame case has teeth: without the degenerate-design guard of :func:`~torchrl_brsl.reach.cells.corner_slopes`
-    (``QUADRATIC_CONDITION = 0``) its ``sin θ`` leaves' constants grow about 15-fold, and the layer held the robot on
-    every step (0.002 m/s; failsafe, hold and out of data on all of them)."""
+    (``QUADRATIC_CONDITION = 0``) the layer held the robot on every step (0.002 m/s; failsafe, hold and out of data
+    on all of them): on ``bench_layer.py``'s world-frame model that guard's absence made the ``sin θ`` leaves'
+    median constant 15 times the pairs'."""
     guarded, free = random_walk(task, local_model(task, body_frame)), unprotected(task)
     with capsys.disabled():
         print(f"\n[{task}{', body frame' if body_frame else ''}] random policy: "
