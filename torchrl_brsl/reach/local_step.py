@@ -80,6 +80,7 @@ class LocalStep:
         self.layout = leaf_layout(cells, model._weighted_data)
         self.near_leaves = min(NEAR_LEAVES, n_leaves)
         self.boxes = (cells.low.mT.contiguous(), cells.high.mT.contiguous())  # [n, f, M]
+        self.slopes_by_input = cells.slopes.mT.clone(memory_format=torch.contiguous_format)  # [n, d + H + Q, M]
         self.leaf_rows = model._leaf_rows
         self.row_offset = torch.arange(n, device=scale.device) * n_leaves
         self.widths = (n, model.action_dim, 1, self.n_hinges, self.n_products)
@@ -126,7 +127,9 @@ class LocalStep:
         self.moves = torch.tensor([float(pair == self.body_frame.position) for pair in pairs for _ in pair], **like)
         self.place = torch.zeros(self.state_dim, 2 * len(pairs), **like)  # dim of each rotated entry
         self.place[index, torch.arange(2 * len(pairs))] = 1.0
-        self.place_pairs = self.place.unflatten(-1, (len(pairs), 2)).clone()  # [n, P, 2], no alias (a traced loop)
+        # [P, n, 2]: where each pair's block goes, no alias (a traced loop)
+        self.place_pairs = self.place.unflatten(-1, (len(pairs), 2)).permute(1, 0, 2).clone(
+            memory_format=torch.contiguous_format)
         self.unrotated = torch.ones(self.state_dim, **like).index_fill(0, self.rotated, 0.0)
         self.box_noise = self.noise_radius[self.rotated]  # the rotated dims' noise goes to the box
         self.noise_radius = self.noise_radius * self.unrotated
@@ -386,7 +389,7 @@ class LocalStep:
                 if torch.compiler.is_compiling() else None)
         distance = leaf_distance(cells, None, z_center.detach(), z_radius.detach(), layout=self.layout, near=near)
         index, errors, covered = leaf_bounds(cells, z_center, z_radius, phi_radius, feature_low, feature_high, distance,
-                                             phi, gaps)
+                                             phi, gaps, self.slopes_by_input)
         A, B, offset, theta, theta_p = self.leaf_rows[index + self.row_offset].split(self.widths, dim=-1)
         # the relaxations relu(s) ∈ λ s + μ ± μ and s1 s2 ∈ λ1 s1 + λ2 s2 + κ ± ε fold into the leaf's
         # model
@@ -452,7 +455,8 @@ class LocalStep:
         new_center = new_center.index_copy(-1, index, rotated.flatten(-2) + w_c + moves)
         moved = gens.flatten(-3, -2) + self.moves.unsqueeze(-1) * generators.index_select(-2, index)
         carried = carried.index_copy(-2, index, moved)
-        blocks = torch.einsum("...kij,rki,ckj->...rc", blocks, self.place_pairs, self.place_pairs)
+        place = self.place_pairs  # each block placed, as sums that fuse when compiled (einsum: a BLAS call per step)
+        blocks = small_matmul(small_matmul(place, blocks), place, transpose_b=True).sum(-3)
         error = torch.diag_embed(errors * self.unrotated + self.noise_radius) + blocks
         box_columns = (box.flatten(-2) + self.box_noise).unsqueeze(-2) * self.place
         return new_center, carried, (error, box_columns)
