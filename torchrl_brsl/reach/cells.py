@@ -843,10 +843,10 @@ def leaf_bounds(cells: Cells, z_center: Tensor, z_radius: Tensor, phi_radius: Te
     batch = feature_low.shape[:-1]
     center = torch.cat((z_center.unsqueeze(-2).expand(*batch, -1), (feature_low + feature_high) / 2), -1)
     half = torch.cat((z_radius.unsqueeze(-2).expand(*batch, -1), (feature_high - feature_low) / 2), -1)
-    by_input = cells.slopes.mT if slopes_by_input is None else slopes_by_input  # [n, d + H, M]
+    by_input = cells.slopes.mT if slopes_by_input is None else slopes_by_input  # [n, d + H + Q, M]
     prediction = small_matmul(center.unsqueeze(-2), by_input).squeeze(-2) + cells.intercepts  # [..., n, M]
     chosen = prediction.gather(-1, index.unsqueeze(-1))
-    slope_gap = by_input - cells.slopes.reshape(n * n_leaves, width)[flat].unsqueeze(-1)  # [..., n, d + H, M]
+    slope_gap = by_input - cells.slopes.reshape(n * n_leaves, width)[flat].unsqueeze(-1)  # [..., n, d + H + Q, M]
     model_gap = (prediction - chosen).abs() + (slope_gap.abs() * half.unsqueeze(-1)).sum(-2)  # fused when compiled
     bound = cells.errors + cells.lipschitz * (distance - cells.delta).clamp_min(0) + model_gap
     errors = torch.where(gap_out <= 0, bound, -torch.inf).amax(-1)
