@@ -1004,7 +1004,7 @@ def leaf_distance(cells: Cells, points: Tensor | None, z_center: Tensor, z_radiu
 
 def _grouped_distance(layout: LeafLayout, query: Tensor, near: Tensor | None) -> Tensor:
     """Squared distances ``[n, B, M]`` of ``query`` ``[n, B, d]`` to each leaf's nearest point (or an upper bound)."""
-    n, n_leaves = layout.representatives.shape[::2]
+    n, _, n_leaves = layout.representatives.shape
     if near is None:  # |q - p|² = |p|² - 2 q.p + |q|², the nearest of each leaf's slots
         squared = torch.baddbmm(layout.norms, query, layout.points, alpha=-2).add_(query.square().sum(-1, keepdim=True))
         return squared.view(n, query.shape[1], n_leaves, layout.norms.shape[-1] // n_leaves).amin(-1).clamp_min_(0)
