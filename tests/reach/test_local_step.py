@@ -178,6 +178,51 @@ def test_a_policy_the_compiler_cannot_trace_runs_step_by_step_and_keeps_the_loop
     _assert_same(_sets_of(model.reach_covered(initial, eager[2])), _sets_of(eager))
 
 
+def _finished(centers, generators, covered, offset, scale):
+    """A ``finish``: the final centre moved by a batched ``offset``, the radii scaled by a constant, ``covered``."""
+    return centers[..., -1, :] + offset, generators.abs().sum(-1) * scale, covered
+
+
+def test_a_finish_runs_in_the_plans_loop(traced, monkeypatch):
+    """``reach_covered(..., finish=(function, batched, args))``: compiled, what the function computes from the sets
+    in the plan's own graph (one plan, several, with a braking policy's tail) is what it computes from the eager
+    sets. A function with a graph break runs after the loop's graph; where the loop with it fails to compile, it runs
+    after the loop, with a warning, the same."""
+    system, eager_model, model = traced
+    x0, plans, _ = random_plans(system, n_plans=5, horizon=4)
+    offset = torch.randn(5, x0.shape[-1], generator=torch.Generator().manual_seed(1), dtype=x0.dtype)
+    wanted = {}
+    for brake in (None, (system.braking, 3)):
+        sets, covered, *actions = eager_model.reach_covered(Zonotope.from_point(x0), plans, brake=brake)
+        want = wanted.setdefault(brake, (sets.center[:, -1] + offset, 2.0 * sets.generators.abs().sum(-1), covered,
+                                         *actions))
+        for batch in (5, 1, 3):
+            got = model.reach_covered(Zonotope.from_point(x0[:batch]), plans[:batch], brake=brake,
+                                      finish=(_finished, (offset[:batch],), (2.0,)))
+            assert len(got) == len(want)
+            for new, old in zip(got, want):
+                torch.testing.assert_close(new, old[:batch], rtol=1e-9, atol=1e-12)
+    step, want = _step_of(model), wanted[None]
+    opaque = torch.compiler.disable(_finished)
+    got = model.reach_covered(Zonotope.from_point(x0), plans, finish=(opaque, (offset,), (2.0,)))
+    for new, old in zip(got, want):
+        torch.testing.assert_close(new, old, rtol=1e-9, atol=1e-12)
+
+    def failing(*args, **kwargs):
+        raise RuntimeError("no C++ compiler on this machine")
+
+    monkeypatch.setattr(step, "_compiled_loop", (*step._compiled_loop[:2], failing, failing))
+    monkeypatch.setattr(step, "_finish_in_loop", True)  # the fixture's model is shared: restored after the test
+    with pytest.warns(RuntimeWarning, match="plan loop with a `finish` failed.*no C.. compiler.*after the loop"):
+        got = model.reach_covered(Zonotope.from_point(x0), plans, finish=(_finished, (offset,), (2.0,)))
+    for new, old in zip(got, want):
+        torch.testing.assert_close(new, old, rtol=1e-9, atol=1e-12)
+    assert not step._finish_in_loop and step._compiled_loop[0] is not failing  # plans without one keep the loop
+    with pytest.raises(ValueError, match="finish.*local model"):
+        fit(system, 200, method="global").reach_covered(Zonotope.from_point(x0), plans,
+                                                         finish=(_finished, (offset,), (2.0,)))
+
+
 def _sets_of(result, batch=None):
     sets, covered = result[:2]
     return sets.center[:batch], sets.generators.abs().sum(-1)[:batch], covered[:batch]

@@ -374,7 +374,8 @@ def test_compiled_plan_gauge_equals_the_eager_check(dims):
 def test_compiled_checker_checks_a_local_models_plans_as_the_eager_one():
     """A compiled local model's checker runs its closed-form checks as one graph, compiled by ``prepare_checks``
     before the first check: the same verdicts, values and gauges as the eager checker's, at one env (padded to
-    two) and at three; with gradients wanted it checks eagerly, differentiable."""
+    two) and at three; with gradients wanted it checks eagerly, differentiable. Checked in the plan's own compiled
+    loop (no ``rollout`` given), the same as after it."""
     bicycle, eager = bicycle_checker(policy=False)
     reach = copy.deepcopy(eager.reach).compile_steps(backend="aot_eager")
     checker = PlanChecker(reach, eager.failsafe, eager.horizon, stop_dims=(3,), stop_slack=0.1,
@@ -391,6 +392,10 @@ def test_compiled_checker_checks_a_local_models_plans_as_the_eager_one():
         want, want_gauge = eager.evaluate_with_gauge(x0, plan, obstacles, rollout=rollout)
         assert bool(((want.values > 0) & torch.isfinite(want.values)).any())
         for new, old in zip((*got, *got_gauge), (*want, *want_gauge)):
+            torch.testing.assert_close(new, old, rtol=1e-12, atol=1e-12)
+        fused, fused_gauge = checker.evaluate_with_gauge(x0, plan, obstacles)
+        after, after_gauge = checker.evaluate_with_gauge(x0, plan, obstacles, rollout=checker.rollout_sets(x0, plan))
+        for new, old in zip((*fused, *fused_gauge), (*after, *after_gauge)):
             torch.testing.assert_close(new, old, rtol=1e-12, atol=1e-12)
     assert counters["frames"]["ok"] == frames  # nothing compiled at a check
     centers = rollout[1].center.clone().requires_grad_(True)

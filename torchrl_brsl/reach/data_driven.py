@@ -373,7 +373,7 @@ class DataDrivenReach(nn.Module):
         return actions
 
     def reach_covered(self, initial: Zonotope, actions: Tensor, tangents: tuple[Tensor, Tensor] | None = None,
-                      brake: tuple | None = None
+                      brake: tuple | None = None, finish: tuple | None = None
                       ) -> tuple[Zonotope, Tensor] | tuple[Zonotope, ...]:
         """:meth:`reach` and whether every step lies in the region the data cover.
 
@@ -393,6 +393,11 @@ class DataDrivenReach(nn.Module):
                 receives them), in the plan's compiled loop when the model is compiled. With ``tangents``,
                 ``(policy, steps, policy_tangent)``: ``policy_tangent(centre [..., n], directions [..., n, k])``
                 maps the centre's directions to the action's ``[..., m, k]``.
+            finish: a local model only: ``(function, batched, args)``, what is computed from the sets, in the plan's
+                compiled loop when the model is compiled (one graph: a check of the sets costs one call):
+                ``function(centers [..., H, n], generators [..., H, n, p], covered [...], *batched, *args)``
+                (:meth:`~torchrl_brsl.reach.local_step.LocalStep.plan_sets`). Its results replace ``(sets,
+                covered)``.
 
         Returns:
             ``(sets [..., H], covered [...])``; with ``tangents`` also the centres' directions
@@ -400,9 +405,9 @@ class DataDrivenReach(nn.Module):
             ``H + steps`` sets).
         """
         actions = self._check_reach_args(initial, actions)
-        for name, value in (("tangents", tangents), ("brake", brake)):
+        for name, value in (("tangents", tangents), ("brake", brake), ("finish", finish)):
             if value is not None and not self.plan_dependent:
-                raise ValueError(f"`{name}` need a local model (method='local'); a global model's centres are "
+                raise ValueError(f"`{name}` is for a local model (method='local'); a global model's centres are "
                                  "affine in the plan (see `reach_centers`)")
         if not self.plan_dependent:
             sets = self.reach(initial, actions)
@@ -412,7 +417,7 @@ class DataDrivenReach(nn.Module):
         batch = broadcast_shapes(initial.batch_size, actions.shape[:-2])
         center = initial.center.to(dtype).expand(*batch, self.state_dim)
         generators = initial.generators.to(dtype).expand(*batch, *initial.generators.shape[-2:])
-        return self._local_step().plan_sets(center, generators, actions, tangents, brake)
+        return self._local_step().plan_sets(center, generators, actions, tangents, brake, finish)
 
     def step_sets(self, center: Tensor, generators: Tensor, action: Tensor,
                   tangents: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, ...]:
@@ -586,7 +591,10 @@ class DataDrivenReach(nn.Module):
     @property
     def bounded_domain(self) -> bool:
         """Whether the model was fitted on a restricted domain (see :meth:`fit`)."""
-        return bool(torch.isfinite(self.domain_low).any() or torch.isfinite(self.domain_high).any())
+        if ("bounded",) not in self._cache:  # read at every check
+            self._cache[("bounded",)] = bool(torch.isfinite(self.domain_low).any() or
+                                             torch.isfinite(self.domain_high).any())
+        return self._cache[("bounded",)]
 
     def in_domain(self, sets: Zonotope, actions: Tensor) -> Tensor:
         """Whether the steps from ``sets`` under ``actions`` stay in the model's domain.

@@ -88,28 +88,30 @@ class LocalStep:
         self._noise(model)
         if self.body_frame is not None:
             self._rotation_tables(model)
-        # per use: steps and whole plans (checking), each without tangents and with them (linearisation)
+        # per use: steps and whole plans (checking), each without tangents and with them (linearisation); plans also
+        # with a `finish` (checking them in the same graph)
         self._compiled = self._compiled_loop = None
-        self._brake_in_loop = True  # until a braking policy fails to compile in the loop
+        self._brake_in_loop = self._finish_in_loop = True  # until a braking policy or a `finish` fails to compile
         if compile_kwargs is not None:
-            step, tangent_step, loop, tangent_loop = step_functions or LocalStep.compiled_functions()
+            step, tangent_step, loop, tangent_loop, *finished_loops = step_functions or LocalStep.compiled_functions()
             self._compiled = tuple(torch.compile(types.MethodType(f, self), **inductor_kwargs(compile_kwargs))
                                    for f in (step, tangent_step))
             if loop is not None:  # inductor's C++ wrapper: a loop of about 50 small kernels per step runs 2-3x
                 # faster when its body is called from C++ rather than Python
                 loop_kwargs = inductor_kwargs(compile_kwargs, cpp_wrapper=True)
                 self._compiled_loop = tuple(torch.compile(types.MethodType(f, self), **loop_kwargs)
-                                            for f in (loop, tangent_loop))
+                                            for f in (loop, tangent_loop, *finished_loops))
 
     @staticmethod
     def compiled_functions(loop: bool = True) -> tuple:
-        """Copies of :meth:`_step` and of :meth:`_loop` (each twice: without and with tangents), each with a code
-        object of its own, for a model to compile: the compiler keys its graphs (and its limit on
-        recompilations) by code object, so copies per model and use keep that model's graphs when its
-        step is rebuilt (after ``.to()``), never evict another model's, and keep each use's guards apart.
-        Without ``loop``, ``None`` for the loop's copies (plans run as compiled steps)."""
-        steps = tuple(own_code(f) for f in (LocalStep._step, LocalStep._step, LocalStep._loop, LocalStep._loop))
-        return steps if loop else steps[:2] + (None, None)
+        """Copies of :meth:`_step` (twice: without and with tangents) and of :meth:`_loop` (four times: without and
+        with tangents, each without and with a ``finish``), each with a code object of its own, for a model to
+        compile: the compiler keys its graphs (and its limit on recompilations) by code object, so copies per
+        model and use keep that model's graphs when its step is rebuilt (after ``.to()``), never evict another
+        model's, and keep each use's guards apart. Without ``loop``, ``None`` for the loop's copies (plans run as
+        compiled steps)."""
+        steps = tuple(own_code(f) for f in (LocalStep._step, LocalStep._step, *[LocalStep._loop] * 4))
+        return steps if loop else steps[:2] + (None,) * 4
 
     def _noise(self, model) -> None:
         """The noise's columns: a box adds its radii to the error's diagonal, else its generators follow."""
@@ -158,7 +160,8 @@ class LocalStep:
 
     def plan_sets(self, center: Tensor, generators: Tensor, actions: Tensor,
                   tangents: tuple[Tensor, Tensor] | None = None,
-                  brake: tuple[Callable[[Tensor], Tensor], int] | None = None) -> tuple:
+                  brake: tuple[Callable[[Tensor], Tensor], int] | None = None,
+                  finish: tuple[Callable[..., tuple[Tensor, ...]], tuple[Tensor, ...], tuple] | None = None) -> tuple:
         """The sets of whole plans: the steps under ``actions`` ``[..., P, m]`` from ``Z(center [..., n],
         generators [..., n, p])``.
 
@@ -175,6 +178,11 @@ class LocalStep:
                 the plan runs step by step). With ``tangents``, ``(policy, steps, policy_tangent)``:
                 ``policy_tangent(centre [..., n], directions [..., n, k])`` gives the tail action's directions
                 ``[..., m, k]`` (e.g. :meth:`~torchrl_brsl.safety.PlanChecker.brake_tangent`).
+            finish: optional ``(function, batched, args)``: what is computed from the sets, in the plan's compiled
+                loop when compiled (one graph, one call): ``function(centers [..., T, n], generators [..., T, n, p],
+                covered [...], *batched, *args)``, traceable and batched over the leading dims (compiled, one flat
+                batch dim); ``batched``: tensors with the plan's batch dims first, ``args``: constants. Its results
+                ``[..., ...]`` replace ``(sets, covered)``.
 
         Returns:
             ``(sets [..., T], covered [...])``: ``covered`` if every step is; with ``tangents``, also
@@ -186,14 +194,26 @@ class LocalStep:
         batch = broadcast_shapes(center.shape[:-1], generators.shape[:-2], actions.shape[:-2])
         inputs = (center, generators, actions, *(tangents or ()))
         differentiable = torch.is_grad_enabled() and any(t.requires_grad for t in inputs)
-        loop = self._compiled_loop[tangents is not None] if self._compiled_loop is not None else None
+        loop = None
+        if self._compiled_loop is not None and (finish is None or self._finish_in_loop):
+            loop = self._compiled_loop[(tangents is not None) + 2 * (finish is not None)]
         if brake is not None and not self._brake_in_loop:
             loop = None
         steps = actions.shape[-2] + (brake[1] if brake else 0)
-        if loop is not None and steps >= 2 and batch.numel() > 0 and not differentiable:
+        if loop is not None and (steps < 2 or not batch.numel() or differentiable):
+            loop = None
+        if loop is None and finish is not None:  # the sets first, then what is computed from them
+            sets, covered, *rest = self.plan_sets(center, generators, actions, tangents, brake)
+            function, batched, args = finish
+            return (*function(sets.center, sets.generators, covered, *batched, *args), *rest)
+        if loop is not None:
             try:
-                return self._run_compiled_loop(loop, batch, center, generators, actions, tangents, brake)
+                return self._run_compiled_loop(loop, batch, center, generators, actions, tangents, brake, finish)
             except Exception as error:  # the compiler's failure must not stop a control loop
+                if finish is not None:  # e.g. a function the compiler cannot trace: the loop runs without it
+                    warn_fallback("the compiled plan loop with a `finish`", error, instead="after the loop")
+                    self._finish_in_loop = False
+                    return self.plan_sets(center, generators, actions, tangents, brake, finish)
                 if brake is not None:  # e.g. a policy the compiler cannot trace: plans without one keep the loop
                     warn_fallback("the compiled plan loop with a braking policy's tail", error, instead="step by step")
                     self._brake_in_loop = False
@@ -223,7 +243,7 @@ class LocalStep:
 
     def _run_compiled_loop(self, loop, batch: torch.Size, center: Tensor, generators: Tensor, actions: Tensor,
                            tangents: tuple[Tensor, Tensor] | None,
-                           brake: tuple[Callable[[Tensor], Tensor], int] | None) -> tuple:
+                           brake: tuple[Callable[[Tensor], Tensor], int] | None, finish: tuple | None = None) -> tuple:
         """:meth:`plan_sets` through the compiled :meth:`_loop`, its inputs as :meth:`_compiled_inputs` makes them,
         steps first, and the plan's length (the tangents' count, the braking tail's length) dynamic: one graph
         for every length from 2 (and one more per braking policy). Without tangents, one plan is a graph of its
@@ -240,9 +260,10 @@ class LocalStep:
                     brake[2] if tangents is not None else None)
             actions = torch.cat((actions, actions.new_zeros(*actions.shape[:-2], brake[1], actions.shape[-1])), -2)
         horizon = actions.shape[-2]
-        center, generators, actions, dc = self._compiled_inputs(
+        function, batched, args = finish if finish is not None else (None, (), ())
+        center, generators, actions, dc, *batched = self._compiled_inputs(
             batch, center, generators, actions, None if tangents is None else (tangents[0],), action_dims=2,
-            single=single)
+            single=single, batched=batched)
         actions = actions.transpose(0, 1).clone(memory_format=torch.contiguous_format)  # [T, B, m] or [T, B, m (1 + k)]
         for dim in (0,) if single else (0, 1):
             torch._dynamo.mark_dynamic(actions, dim)
@@ -252,19 +273,28 @@ class LocalStep:
                 if k >= 2:
                     torch._dynamo.mark_dynamic(dc, 2)
                     torch._dynamo.mark_dynamic(actions, 2)
-                out = loop(center, generators, actions, dc, *tail)
-            else:
-                out = loop(center, generators, actions, None, *tail)
-        shapes = ((n,), (n, width)) + (((n, -1),) if tangents is not None else ()) + (((-1,),) if tail else ())
-        centers, sets, *extra = (t[:, :count].transpose(0, 1).reshape(*batch, horizon, *shape)
-                                 for t, shape in zip((out[0], out[1], *out[3:]), shapes))
+            tail = tail or (None, None, None)
+            finishing = {} if function is None else dict(finish=function, finish_inputs=(*batched, *args))
+            out = loop(center, generators, actions, dc, *tail, **finishing)
+        shapes = (((n, -1),) if tangents is not None else ()) + (((-1,),) if tail[0] is not None else ())
+        head, per_step = out[:len(out) - len(shapes)], out[len(out) - len(shapes):]  # per step: [T, B, ...]
+
+        def batch_first(t: Tensor, shape: tuple) -> Tensor:
+            return t[:, :count].transpose(0, 1).reshape(*batch, horizon, *shape)
+
+        per_step = tuple(batch_first(t, shape) for t, shape in zip(per_step, shapes))
+        if function is not None and len(batch) == 1 and center.shape[0] == count:  # no padding to undo
+            return tuple(head) + per_step
+        if function is not None:
+            return tuple(t[:count].reshape(*batch, *t.shape[1:]) for t in head) + per_step
         with skip_value_checks():  # finite by construction
-            result = (Zonotope(centers, sets), out[2][:count].reshape(batch))
-        return result + tuple(extra)
+            sets = Zonotope(batch_first(head[0], (n,)), batch_first(head[1], (n, width)))
+        return (sets, head[2][:count].reshape(batch)) + per_step
 
     def _loop(self, center: Tensor, generators: Tensor, actions: Tensor, tangent: Tensor | None = None,
               policy: Callable[[Tensor], Tensor] | None = None, plan_steps: Tensor | None = None,
-              policy_tangent: Callable[[Tensor, Tensor], Tensor] | None = None) -> tuple[Tensor, ...]:
+              policy_tangent: Callable[[Tensor, Tensor], Tensor] | None = None,
+              finish: Callable[..., tuple[Tensor, ...]] | None = None, finish_inputs: tuple = ()) -> tuple[Tensor, ...]:
         """:meth:`_step` over a plan as one ``while_loop``, traced as one graph when compiled: ``center [B, n]``,
         ``generators [B, n, max_generators]``, ``actions [T, B, m]`` to ``(centers [T, B, n], generators
         [T, B, n, max_generators], covered [B])``. With ``tangent`` ``[B, n, k]`` (the initial centre's
@@ -272,10 +302,11 @@ class LocalStep:
         the centres' directions ``[T, B, n, k]`` follow. With ``policy``, the steps from ``plan_steps``
         (a 0-d tensor) on take ``policy(centre)`` instead of their row of ``actions`` (and with ``tangent``
         ``policy_tangent(centre, directions)`` instead of its directions), and the actions taken ``[T, B, m]``
-        come last. The loop carries the current set only (its shapes fixed: the step reduces to ``max_generators``
-        columns) and writes every step's results into buffers allocated once (a ``while_loop`` may mutate
-        captured tensors without gradients); carried, the buffers were copied whole at every step, and the
-        Turtlebot's 16-step plans took 3-5 % longer."""
+        come last. With ``finish``, ``finish(centers [B, T, n], generators [B, T, n, max_generators], covered,
+        *finish_inputs)``'s results replace the first three (:meth:`plan_sets`). The loop carries the current set only
+        (its shapes fixed: the step reduces to ``max_generators`` columns) and writes every step's results into buffers
+        allocated once (a ``while_loop`` may mutate captured tensors without gradients); carried, the buffers were
+        copied whole at every step, and the Turtlebot's 16-step plans took 3-5 % longer."""
         horizon, m = actions.shape[0], self.widths[1]
 
         def more(i: Tensor, *_) -> Tensor:
@@ -313,8 +344,9 @@ class LocalStep:
         if tangent is not None:
             start += (tangent,)
         covered = while_loop(more, step, start)[3]
-        return (centers, sets, covered, *((directions,) if tangent is not None else ()),
-                *((taken,) if policy is not None else ()))
+        head = ((centers, sets, covered) if finish is None else
+                finish(centers.transpose(0, 1), sets.transpose(0, 1), covered, *finish_inputs))
+        return (*head, *((directions,) if tangent is not None else ()), *((taken,) if policy is not None else ()))
 
     def _run_compiled(self, center: Tensor, generators: Tensor, action: Tensor,
                       tangents: tuple[Tensor, Tensor] | None) -> tuple[Tensor, ...]:
@@ -339,12 +371,14 @@ class LocalStep:
         return tuple(t[:count].reshape(*batch, *shape) for t, shape in zip(out, shapes))
 
     def _compiled_inputs(self, batch: torch.Size, center: Tensor, generators: Tensor, action: Tensor,
-                         tangents: tuple[Tensor, Tensor] | None, action_dims: int = 1, single: bool = False) -> tuple:
+                         tangents: tuple[Tensor, Tensor] | None, action_dims: int = 1, single: bool = False,
+                         batched: tuple[Tensor, ...] = ()) -> tuple:
         """Inputs on shapes that keep one compiled graph: a flat, contiguous batch of at least 2 (sizes 0 and
         1 are specialised by the compiler) marked dynamic, never a view (a view's guards read its base),
         and exactly ``max_generators`` columns (zero padding; a wider input is reduced first), so the
         reduction takes the same branch at every step. ``action`` has ``action_dims`` event dims. With
-        ``single`` (a batch of one), a batch of exactly 1, for a graph of its own."""
+        ``single`` (a batch of one), a batch of exactly 1, for a graph of its own. ``batched`` (tensors with the
+        batch dims first) follow, flattened alike."""
         count, width = batch.numel(), self.max_generators
         rows = 1 if single else max(count, 2)
 
@@ -363,7 +397,8 @@ class LocalStep:
         elif generators.shape[-1] > width:
             generators = reduce_girard(generators, width)
         return (flat(center, 1), flat(generators, 2), flat(action, action_dims),
-                None if tangents is None else tuple(flat(t, 2) for t in tangents))
+                None if tangents is None else tuple(flat(t, 2) for t in tangents),
+                *(flat(t, t.ndim - len(batch)) for t in batched))
 
     def _step(self, center: Tensor, generators: Tensor, action: Tensor,
               tangents: tuple[Tensor, Tensor] | None) -> tuple[Tensor, ...]:

@@ -358,8 +358,10 @@ class PlanChecker:
         """Compile the closed-form check of a compiled local model's sets (:meth:`evaluate_with_gauge`) for obstacles of
         the shapes of ``obstacles`` ``[B, K, d, ...]`` (their values unused) now, not at the first control step: each
         count of obstacles and of their generators is a graph of its own (one plan, and several), 10-15 s to compile
-        on a 2-core CPU with an empty cache. :class:`~torchrl_brsl.safety.BRSLSafetyLayer` calls it with its env's
-        obstacle specs. Otherwise (eager or global model, obstacles checked by the LP) nothing."""
+        on a 2-core CPU with an empty cache; so is the check in the plan's loop (:meth:`_fuses_check`), about 5 s
+        more a graph on the Turtlebot's model (inductor keeps no graph that holds a loop in its cache).
+        :class:`~torchrl_brsl.safety.BRSLSafetyLayer` calls it with its env's obstacle specs. Otherwise (eager or
+        global model, obstacles checked by the LP) nothing."""
         if (not self.plan_dependent or self.reach.compile_options is None or self.uses_lp(obstacles)
                 or not obstacles.center.shape[-2]):
             return
@@ -370,8 +372,10 @@ class PlanChecker:
             placeholders = Obstacles(center.new_zeros(plans, *center.shape[-2:], **like),
                                      generators.new_zeros(plans, *generators.shape[-3:], **like),
                                      torch.zeros(plans, center.shape[-2], dtype=torch.bool, device=rest.device))
+            plan = self.hold(rest).expand(plans, 1, -1)
             with torch.no_grad():
-                self.evaluate(rest, self.hold(rest).expand(plans, 1, -1), placeholders)
+                self.evaluate(rest, plan, placeholders)
+                self.evaluate_with_gauge(rest, plan, placeholders, rollout=self.rollout_sets(rest, plan))
 
     def run_fused(self, function: Callable, batch: Tensor, *args, length: int,
                   fuse_from: int = FUSE_FROM_STEPS) -> Any:
@@ -425,7 +429,8 @@ class PlanChecker:
             self._memo[("eager", function)] = True
             return None
 
-    def rollout_sets(self, x0: Tensor, plan: Tensor, tangents: tuple[Tensor, Tensor] | None = None) -> tuple:
+    def rollout_sets(self, x0: Tensor, plan: Tensor, tangents: tuple[Tensor, Tensor] | None = None,
+                     finish: tuple | None = None) -> tuple:
         """Reachable sets of ``plan`` followed by braking up to the horizon (a local model).
 
         Args:
@@ -434,6 +439,8 @@ class PlanChecker:
             tangents: optional ``(dx [B, n, k], du [B, P, m, k])``, directions of the state and the plan,
                 mapped to the centres' to first order (:meth:`DataDrivenReach.reach_covered`), a braking
                 policy's tail with :meth:`brake_tangent`.
+            finish: optional ``(function, batched, args)``: what is computed from the sets, in the same compiled
+                graph (:meth:`DataDrivenReach.reach_covered`); its results replace ``(sets, covered)``.
 
         Returns:
             ``(actions [B, T, m], sets [B, T], covered [B])``, differentiable w.r.t. ``plan``; with
@@ -448,9 +455,9 @@ class PlanChecker:
             if tangents is not None:  # the constant brake's actions do not move
                 du = tangents[1]
                 tangents = (tangents[0], torch.cat((du, du.new_zeros(*du.shape[:-3], n_tail, *du.shape[-2:])), -3))
-            return (actions, *self.reach.reach_covered(initial, actions, tangents))
+            return (actions, *self.reach.reach_covered(initial, actions, tangents, finish=finish))
         brake = (self._tail_brake(plan), n_tail) + ((self._tail_brake_tangent(plan),) if tangents is not None else ())
-        *result, actions = self.reach.reach_covered(initial, plan, tangents, brake)
+        *result, actions = self.reach.reach_covered(initial, plan, tangents, brake, finish)
         return (actions, *result)
 
     def _tail_brake(self, like: Tensor) -> Callable[[Tensor], Tensor]:
@@ -529,48 +536,66 @@ class PlanChecker:
                             ) -> tuple[PlanEvaluation, Gauge | None]:
         """:meth:`evaluate`, with the signed facet products, the facet attaining each value and the
         facet weights (``detail``): what the adjusters linearise (``None`` from the LP). ``rollout``:
-        the plan's :meth:`rollout_sets` when already at hand (a local model)."""
+        the plan's :meth:`rollout_sets` when already at hand (a local model); without it, a compiled local model
+        checks the plan in the loop that computes its sets (:meth:`_fuses_check`)."""
         lp = self.uses_lp(obstacles)
+        if self.plan_dependent and rollout is None and not lp and self._fuses_check(x0, plan):
+            finish = (_checked_sets, (obstacles.center, obstacles.generators, obstacles.mask),
+                      (self._position_index, self.set_width, self._stop_index, self.stop_tolerance, self.stop_slack,
+                       self._threshold))
+            actions, centers, generators, covered, stop_room, values, stop_excess, safe, *gauge, full = (
+                self.rollout_sets(x0, plan, finish=finish))
+            if bool(full.all()):
+                evaluation = PlanEvaluation(actions, centers, values, stop_excess, safe, stop_room, covered)
+                return self._in_domain(x0, evaluation, generators), Gauge(*gauge) if detail else None
+            with skip_value_checks():  # pairs not certified full-dimensional: the eager check below
+                rollout = (actions, Zonotope(centers, generators), covered)
         if self.plan_dependent:
             actions, sets, covered = self.rollout_sets(x0, plan) if rollout is None else rollout
-            centers = sets.center
-            stop_room = (self.stop_slack.expand(centers.shape[0], -1) if self.stop_slack is not None else
-                         self.stop_tolerance - _take(sets.generators[:, -1].abs().sum(-1), self._stop_index))
-            if self.reach.bounded_domain:  # every step starts inside the model's domain
-                radius = sets.generators.abs().sum(-1)
-                starts = torch.cat((x0.to(centers).unsqueeze(1), centers[:, :-1]), dim=1)
-                radius = torch.cat((torch.zeros_like(radius[:, :1]), radius[:, :-1]), dim=1)
-                covered = covered & self.reach._boxes_in_domain(starts, radius, actions)
+            centers, generators = sets.center, sets.generators
+            stop_room = _stop_room(generators, self.stop_tolerance, self.stop_slack, self._stop_index)
         else:
             actions, centers = self.rollout(x0, plan)
-            covered = torch.ones(centers.shape[0], dtype=torch.bool, device=centers.device)
+            covered, generators = torch.ones(centers.shape[0], dtype=torch.bool, device=centers.device), None
             stop_room = self._stop_room.to(centers).expand(centers.shape[0], -1)
         positions = _take(centers, self._position_index)  # [B, T, d]
         if lp:
-            projected = self._projected(sets) if self.plan_dependent else self.set_generators.to(centers)
+            projected = self._projected(generators) if self.plan_dependent else self.set_generators.to(centers)
             values, gauge = _lp_values(positions, projected, obstacles), None
         elif self.plan_dependent:
-            values, gauge = self._plan_values(sets, positions, obstacles, detail)
+            values, gauge = self._plan_values(generators, centers, obstacles, detail)
         else:
             self.checker(obstacles.generators)
             values, gauge = self._closed_form_values(positions, obstacles, detail)
-        values = torch.where(obstacles.mask.unsqueeze(-2), torch.nan_to_num(values, nan=0.0, posinf=0.0, neginf=0.0),
-                             float("inf"))
-        if self.stop_dims:
-            stop_excess = (_take(centers.select(1, -1), self._stop_index).abs() - stop_room).amax(-1)
-        else:
-            stop_excess = centers.new_zeros(centers.shape[0])
-        if values.shape[-1] and values.shape[-2]:
-            collision_free = values.amin((-1, -2)) > self._threshold
-        else:
-            collision_free = torch.ones_like(stop_excess, dtype=torch.bool)
-        safe = collision_free & (stop_excess <= 0) & covered
-        if self._domain_radius is not None:
-            starts = torch.cat((x0.to(centers).unsqueeze(1), centers[:, :-1]), dim=1)
-            inside = self.reach._boxes_in_domain(starts, self._domain_radius.to(centers), actions)
-            safe, covered = safe & inside, covered & inside
+        values, stop_excess, safe = _verdict(values, obstacles.mask, centers, stop_room, covered, self._stop_index,
+                                             self._threshold)
         evaluation = PlanEvaluation(actions, centers, values, stop_excess, safe, stop_room, covered)
-        return evaluation, gauge
+        return self._in_domain(x0, evaluation, generators), gauge
+
+    def _in_domain(self, x0: Tensor, evaluation: PlanEvaluation, generators: Tensor | None) -> PlanEvaluation:
+        """``evaluation`` with the plans marked uncovered and unsafe where a step starts outside the domain a local
+        model was fitted on (its sets' generators ``[B, T, n, p]``; ``None``: a global model), or beyond the
+        checked radius around the data (``domain_radius``)."""
+        bounded = generators is not None and self.reach.bounded_domain  # every step starts inside the model's domain
+        if not bounded and self._domain_radius is None:
+            return evaluation
+        centers, inside = evaluation.centers, True
+        starts = torch.cat((x0.to(centers).unsqueeze(1), centers[:, :-1]), dim=1)
+        if bounded:
+            radius = generators.abs().sum(-1)
+            radius = torch.cat((torch.zeros_like(radius[:, :1]), radius[:, :-1]), dim=1)
+            inside = self.reach._boxes_in_domain(starts, radius, evaluation.actions)
+        if self._domain_radius is not None:
+            inside = inside & self.reach._boxes_in_domain(starts, self._domain_radius.to(centers), evaluation.actions)
+        return evaluation._replace(safe=evaluation.safe & inside, covered=evaluation.covered & inside)
+
+    def _fuses_check(self, x0: Tensor, plan: Tensor) -> bool:
+        """Whether the closed-form check of a local model's plan runs in the plan's compiled loop, one graph and one
+        call (:meth:`DataDrivenReach.reach_covered`'s ``finish``): the model is compiled and nothing needs
+        gradients. Two plans of one step and 6 braking steps on the Turtlebot's body-frame model: 0.78-0.79 instead
+        of 0.95-0.98 ms a check (one core, tcmalloc), where the loop's and the check's calls took 0.38 and 0.18."""
+        return self.reach.compile_options is not None and not (
+            torch.is_grad_enabled() and (plan.requires_grad or x0.requires_grad))
 
     def uses_lp(self, obstacles: Obstacles) -> bool:
         """Whether ``obstacles`` are checked by the LP (``collision``): polytopes, or a space beyond 3-D."""
@@ -581,24 +606,25 @@ class PlanChecker:
                              "use collision='lp' or 'auto'")
         return self.collision == "lp" or needs_lp
 
-    def _plan_values(self, sets: Zonotope, positions: Tensor, obstacles: Obstacles,
+    def _plan_values(self, generators: Tensor, centers: Tensor, obstacles: Obstacles,
                      detail: bool) -> tuple[Tensor, Gauge | None]:
-        """``v*`` ``[B, T, K]`` of plan-dependent ``sets`` ``[B, T]`` (their centres' ``positions`` ``[B, T, d]``) by
-        the closed form, with the :class:`Gauge` when ``detail``.
+        """``v*`` ``[B, T, K]`` of plan-dependent sets ``Z(centers [B, T, n], generators [B, T, n, p])`` by the closed
+        form, with the :class:`Gauge` when ``detail``.
 
         Where the model's steps are compiled and no centre needs gradients, the whole check (the sets' projections,
         their facets against the obstacles' and the gauges) runs as one compiled graph (:func:`_plan_gauge`; one
         16-step plan against 12 obstacles: 0.5 ms eagerly, 0.14 ms compiled), compiled by :meth:`prepare_checks` or at
         the first check. Pairs it cannot certify as full-dimensional (none where the sets carry noise) and every other
         case are checked eagerly, facet data first (:meth:`_plan_facets`)."""
-        values = None
-        if self.reach.compile_options is not None and not (torch.is_grad_enabled() and positions.requires_grad):
-            fused = self._compiled(_plan_gauge, (sets.generators, sets.center, obstacles.center, obstacles.generators),
-                                   self._position_index, self.set_width, cpp_wrapper=True, single=True)
-            if fused is not None and bool(fused[-1].all()):
-                values, picked, weights, _ = fused
-        if values is None:
-            self._plan_facets(self._projected(sets), obstacles.generators)
+        gauged = None
+        if self.reach.compile_options is not None and not (torch.is_grad_enabled() and centers.requires_grad):
+            gauged = self._compiled(_plan_gauge, (generators, centers, obstacles.center, obstacles.generators),
+                                    self._position_index, self.set_width, cpp_wrapper=True, single=True)
+        if gauged is not None and bool(gauged[-1].all()):
+            values, picked, weights, _ = gauged
+        else:
+            self._plan_facets(self._projected(generators), obstacles.generators)
+            positions = _take(centers, self._position_index)
             offsets = obstacles.center.unsqueeze(-3) - positions.unsqueeze(-2)  # [B, T, K, d]
             values, picked, weights = pair_gauge(offsets, self._facets)
         return values, Gauge(picked, weights) if detail else None
@@ -618,15 +644,16 @@ class PlanChecker:
         weights = rows_at(table.expand(*best.shape, *table.shape[-2:]), best)
         return values, Gauge(products.gather(-1, best.unsqueeze(-1)).squeeze(-1), weights)
 
-    def _projected(self, sets: Zonotope) -> Tensor:
-        """Generators ``[B, T, d, ps]`` of plan-dependent sets on the obstacle space, reduced to ``set_width``.
+    def _projected(self, generators: Tensor) -> Tensor:
+        """Generators ``[B, T, d, ps]`` of plan-dependent sets (theirs: ``[B, T, n, p]``) on the obstacle space,
+        reduced to ``set_width``.
 
         Each projection is enlarged by a box of half-width :data:`MIN_SET_RADIUS` (a larger set
         only makes the check stricter) so that ``Z(0, [G_set, G_obstacle])`` is always
         full-dimensional, also against the zero generators of empty obstacle slots when a
         step's sets are flat in some direction (the closed form would refuse the pair).
         """
-        return _projected_generators(sets.generators, self._position_index, self.set_width)
+        return _projected_generators(generators, self._position_index, self.set_width)
 
     def _plan_facets(self, projected: Tensor, obstacle_generators: Tensor) -> None:
         """Facet data of plan-dependent sets (projected, ``[B, T, d, ps]``) against the obstacles ``[B, K, d, p]``:
@@ -756,6 +783,48 @@ def _plan_gauge(generators: Tensor, centers: Tensor, obstacle_centers: Tensor, o
     facets = split_pair_facets(projected, obstacle_generators.unsqueeze(-4))
     offsets = obstacle_centers.unsqueeze(-3) - _take(centers, index).unsqueeze(-2)  # [B, T, K, d]
     return (*pair_gauge(offsets, facets), facets.full)
+
+
+def _checked_sets(centers: Tensor, generators: Tensor, covered: Tensor, obstacle_centers: Tensor,
+                  obstacle_generators: Tensor, mask: Tensor, index: slice | list[int], width: int,
+                  stop_index: slice | list[int], stop_tolerance: Tensor, stop_slack: Tensor | None,
+                  threshold: float) -> tuple[Tensor, ...]:
+    """The check of a plan's sets ``Z(centers [B, T, n], generators [B, T, n, p])``, ``covered`` ``[B]``, against the
+    obstacles ``Z(obstacle_centers [B, K, d], obstacle_generators [B, K, d, q])`` (``mask`` ``[B, K]``), traced after
+    the plan's loop, in its graph (:meth:`PlanChecker.evaluate_with_gauge`): ``(centers, generators, covered,
+    stop_room, values, stop_excess, safe, picked, weights, full)`` (:func:`_stop_room`, :func:`_verdict`,
+    :func:`_plan_gauge`), valid where ``full``."""
+    stop_room = _stop_room(generators, stop_tolerance, stop_slack, stop_index)
+    values, picked, weights, full = _plan_gauge(generators, centers, obstacle_centers, obstacle_generators, index,
+                                                width)
+    return (centers, generators, covered, stop_room,
+            *_verdict(values, mask, centers, stop_room, covered, stop_index, threshold), picked, weights, full)
+
+
+def _stop_room(generators: Tensor, tolerance: Tensor, slack: Tensor | None, index: slice | list[int]) -> Tensor:
+    """How far ``[B, s]`` the final centre of plan-dependent sets (``generators`` ``[B, T, n, p]``) may lie from rest on
+    the stop dims ``index``: ``slack`` where given, else ``tolerance`` less the final set's radius."""
+    if slack is not None:
+        return slack.expand(generators.shape[0], -1)
+    return tolerance - _take(generators[:, -1].abs().sum(-1), index)
+
+
+def _verdict(values: Tensor, mask: Tensor, centers: Tensor, stop_room: Tensor, covered: Tensor,
+             stop_index: slice | list[int], threshold: float) -> tuple[Tensor, Tensor, Tensor]:
+    """``(values, stop_excess, safe)`` of plans with centres ``[B, T, n]``: the pairs' values ``[B, T, K]`` with
+    the empty obstacle slots (``mask`` ``[B, K]`` false) at ``inf`` and the non-finite values at 0 (colliding), how
+    far ``[B]`` the final centre lies beyond ``stop_room`` ``[B, s]`` on the stop dims, and whether each plan is
+    safe: every value above ``threshold``, stopped and ``covered`` ``[B]``."""
+    values = torch.where(mask.unsqueeze(-2), torch.nan_to_num(values, nan=0.0, posinf=0.0, neginf=0.0), float("inf"))
+    if stop_room.shape[-1]:
+        stop_excess = (_take(centers.select(-2, -1), stop_index).abs() - stop_room).amax(-1)
+    else:
+        stop_excess = centers.new_zeros(centers.shape[0])
+    if values.shape[-1] and values.shape[-2]:
+        collision_free = values.amin((-1, -2)) > threshold
+    else:
+        collision_free = torch.ones_like(covered)
+    return values, stop_excess, collision_free & (stop_excess <= 0) & covered
 
 
 def _lp_values(positions: Tensor, projected: Tensor, obstacles: Obstacles) -> Tensor:
