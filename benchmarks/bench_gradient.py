@@ -4,7 +4,7 @@ Behind a random policy (``N_ENVS`` envs of the task in one layer, one-action pla
 stop slack 0.15, as ``bench_closed_loop.py``), two layers on the same model run alternately, call by call, in one
 process (this machine's load drifts): ``GradientAdjuster`` as it is, whose iterations on a local model take the
 gradient from one rollout with tangents (the sets' generators held fixed,
-:func:`torchrl_brsl.safety.adjust._leaf_rollout`), and the same adjuster differentiating through the steps by
+:func:`torchrl_brsl.safety.adjust._leaf_check`), and the same adjuster differentiating through the steps by
 autograd (``_analytic = False``, its path on local models before). Per variant: the median time per batched
 call, the calls that adjusted and their median time, the gradient iterations per adjusted env, and the failsafe
 share of the env steps. The local model is compiled unless ``--eager`` (``DataDrivenReach.compile_steps``).

@@ -10,7 +10,7 @@ from torch._dynamo.utils import counters
 from torchrl_brsl.collision import ZonotopeCollisionChecker
 from torchrl_brsl.reach import DataDrivenReach, DoubleIntegrator, KinematicBicycle
 from torchrl_brsl.safety import FacetQPAdjuster, Failsafe, GradientAdjuster, PlanChecker, SafetyDecision
-from torchrl_brsl.safety.adjust import _centre_jacobian, _closed_form_gradient, _leaf_rollout, _project_polytope
+from torchrl_brsl.safety.adjust import _centre_jacobian, _closed_form_gradient, _leaf_check, _project_polytope
 from torchrl_brsl.sets import Zonotope
 
 from safety_support import assert_closed_form_matches_autograd, obstacles_of
@@ -228,26 +228,27 @@ def test_leaf_jacobian_of_a_local_model_matches_finite_differences(policy):
                           action_low=system.action_low, action_high=system.action_high)
     gen = torch.Generator().manual_seed(1)
     x0, plan = system.sample_states(8, gen) * 0.3, system.sample_actions(8, N_PLAN, generator=gen) * 0.5
-    torch.testing.assert_close(_leaf_rollout(checker, x0, plan)[-1], _centre_jacobian(checker, x0, plan),
+    obstacles = obstacles_of(*scene(8)[2:])
+    torch.testing.assert_close(_leaf_check(checker, x0, plan, obstacles)[-1], _centre_jacobian(checker, x0, plan),
                                rtol=1e-4, atol=2e-4)
     bicycle, checker = bicycle_checker(policy)
     x0, plan = bicycle.sample_states(8, gen) * 0.3, bicycle.sample_actions(8, N_PLAN, generator=gen) * 0.5
-    torch.testing.assert_close(_leaf_rollout(checker, x0, plan)[-1][:, 0], _centre_jacobian(checker, x0, plan)[:, 0],
-                               rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(_leaf_check(checker, x0, plan, obstacles)[-1][:, 0],
+                               _centre_jacobian(checker, x0, plan)[:, 0], rtol=1e-4, atol=1e-5)
 
 
 @pytest.mark.parametrize("policy", [False, True])
 def test_the_gradient_on_a_local_model_chains_the_loss_through_the_leaf_jacobian(policy):
     """The projected gradient's closed form on a local model is autograd's gradient of its loss in the centres (the
-    sets' generators held fixed), chained with the centres' Jacobian along the plan's sets (:func:`_leaf_rollout`,
+    sets' generators held fixed), chained with the centres' Jacobian along the plan's sets (:func:`_leaf_check`,
     which the tests above check against finite differences): one rollout with tangents per iteration."""
     bicycle, checker = bicycle_checker(policy)
     gen = torch.Generator().manual_seed(4)
     x0, plan = bicycle.sample_states(3, gen) * 0.3, bicycle.sample_actions(3, N_PLAN, generator=gen) * 0.5
     obstacles, threshold = obstacles_of(*scene()[2:]), 50.0  # every finite value below it: a gradient from each
     with torch.no_grad():
-        actions, sets, covered, jacobian = _leaf_rollout(checker, x0, plan)
-        evaluation, gauge = checker.evaluate_with_gauge(x0, plan, obstacles, rollout=(actions, sets, covered))
+        evaluation, gauge, jacobian = _leaf_check(checker, x0, plan, obstacles)
+        actions, sets, covered = checker.rollout_sets(x0, plan)
     jacobian = jacobian.flatten(-2)  # [B, T, n, N]
     closed = _closed_form_gradient(checker, evaluation, gauge, jacobian[:, :, checker.position_dims],
                                    jacobian[:, -1, checker.stop_dims], threshold)
@@ -268,44 +269,49 @@ def test_the_gradient_on_a_local_model_chains_the_loss_through_the_leaf_jacobian
 
 
 @pytest.mark.filterwarnings("error::RuntimeWarning")  # no fallback to eager
-def test_facet_qp_prepares_its_compiled_linearisation_along_a_braking_policy():
-    """With a compiled local model and a braking policy, the linearisation runs in the plan's compiled loop with the
-    eager values, and its graph is compiled when the decision is built (``FacetQPAdjuster.prepare``), not at a
-    control step."""
+def test_the_compiled_linearisation_along_a_braking_policy_is_prepared_with_the_checks():
+    """With a compiled local model and a braking policy, the adjusters' linearisation runs in the plan's compiled loop
+    with the check, with the eager values, and its graph is compiled with the checks
+    (:meth:`PlanChecker.prepare_checks`, which the layer calls), not at a control step."""
     bicycle, eager = bicycle_checker(policy=True)
     reach = copy.deepcopy(eager.reach).compile_steps(backend="aot_eager")
     checker = PlanChecker(reach, eager.failsafe, eager.horizon, stop_dims=(3,), stop_slack=0.1,
                           action_low=bicycle.action_low, action_high=bicycle.action_high)
     SafetyDecision(checker, checker.failsafe, FacetQPAdjuster())
+    checker.prepare_checks(obstacles_of(*scene(2, 4)[2:]))
     frames = counters["frames"]["ok"]
     gen = torch.Generator().manual_seed(2)
     for n_envs, steps in ((3, N_PLAN), (1, 1)):
         x0 = bicycle.sample_states(n_envs, gen) * 0.3
         plan = bicycle.sample_actions(n_envs, steps, generator=gen) * 0.5
-        (actions, sets, *rest), expected = _leaf_rollout(checker, x0, plan), _leaf_rollout(eager, x0, plan)
-        radii = (sets.generators.abs().sum(-1), expected[1].generators.abs().sum(-1))  # the columns' order may differ
-        for got, want in zip((actions, sets.center, radii[0], *rest), (expected[0], expected[1].center, radii[1],
-                                                                        *expected[2:])):
-            torch.testing.assert_close(got, want, rtol=1e-9, atol=1e-12)
-    assert counters["frames"]["ok"] == frames  # compiled when the decision was built
+        obstacles = obstacles_of(*scene(n_envs, 4, seed=n_envs)[2:])
+        got, expected = _leaf_check(checker, x0, plan, obstacles), _leaf_check(eager, x0, plan, obstacles)
+        for new, old in zip((*got[0], *got[1], got[2]), (*expected[0], *expected[1], expected[2])):
+            torch.testing.assert_close(new, old, rtol=1e-9, atol=1e-12)
+    assert counters["frames"]["ok"] == frames  # compiled with the checks
 
 
 @pytest.mark.parametrize("policy", [False, True])
-def test_the_leaf_rollout_gives_the_sets_of_rollout_sets_and_the_evaluation_is_unchanged(policy):
-    """The facet QP takes the reference's sets from the rollout that linearises it: the same sets, bit for bit."""
+@pytest.mark.parametrize("compiled", [False, True])
+def test_the_leaf_check_is_the_checkers_evaluation(policy, compiled):
+    """The adjusters take the reference's check from the rollout that linearises it: the same evaluation and gauge
+    as :meth:`PlanChecker.evaluate_with_gauge` without tangents: bit for bit eagerly, to rounding compiled (both in
+    the plan's loop, graphs of their own); ``tangents`` with a ``rollout`` of the caller's are refused."""
     bicycle, checker = bicycle_checker(policy)
+    if compiled:
+        checker = PlanChecker(copy.deepcopy(checker.reach).compile_steps(backend="aot_eager"), checker.failsafe,
+                              checker.horizon, stop_dims=(3,), stop_slack=0.1, action_low=bicycle.action_low,
+                              action_high=bicycle.action_high)
     gen = torch.Generator().manual_seed(1)
     x0, plan = bicycle.sample_states(3, gen) * 0.3, bicycle.sample_actions(3, N_PLAN, generator=gen) * 0.5
     obstacles = obstacles_of(*scene()[2:])
-    actions, sets, covered, _ = _leaf_rollout(checker, x0, plan)
-    expected = checker.rollout_sets(x0, plan)
-    torch.testing.assert_close(actions, expected[0], rtol=0, atol=0)
-    torch.testing.assert_close(sets.center, expected[1].center, rtol=0, atol=0)
-    torch.testing.assert_close(sets.generators, expected[1].generators, rtol=0, atol=0)
-    assert torch.equal(covered, expected[2])
-    given, _ = checker.evaluate_with_gauge(x0, plan, obstacles, rollout=(actions, sets, covered))
-    for new, old in zip(given, checker.evaluate(x0, plan, obstacles)):
-        torch.testing.assert_close(new, old, rtol=0, atol=0)
+    evaluation, gauge, _ = _leaf_check(checker, x0, plan, obstacles)
+    expected = checker.evaluate_with_gauge(x0, plan, obstacles)
+    for new, old in zip((*evaluation, *gauge), (*expected[0], *expected[1])):
+        torch.testing.assert_close(new, old, rtol=1e-12 if compiled else 0, atol=1e-12 if compiled else 0)
+    with pytest.raises(ValueError, match="tangents.*own rollout"):
+        checker.evaluate_with_gauge(x0, plan, obstacles, rollout=checker.rollout_sets(x0, plan),
+                                    tangents=(x0.new_zeros(3, 4, 1), plan.new_zeros(*plan.shape, 1)))
 
 
 def test_facet_qp_moves_along_a_constraint_the_reference_already_sits_on(reach):

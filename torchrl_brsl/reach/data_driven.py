@@ -451,9 +451,12 @@ class DataDrivenReach(nn.Module):
         and 90 s with a full one. Inductor (torch 2.13) does not cache a graph that holds a
         ``while_loop``, so each process traces the plan's loops on symbolic batch sizes and generates
         their code again; only the single steps' two graphs come from the cache. ``warm_up``
-        compiles the checking and the linearisation graphs here, on two offline states, so that no
-        control step stalls on it (the graphs of gradients through the steps, which the adjusters
-        take only for obstacles checked by the LP, compile on first use). A global model's steps are
+        compiles the steps' and the plans' graphs (with and without tangents) here, on two offline
+        states, so that no call of :meth:`reach_covered` stalls on it (the graphs of gradients through
+        the steps, which the adjusters take only for obstacles checked by the LP, compile on first
+        use). The safety layer's checks and its adjusters' linearisation run in graphs of their own,
+        the plan's loop with the check (``finish``), compiled when the layer is appended
+        (:meth:`~torchrl_brsl.safety.PlanChecker.prepare_checks`). A global model's steps are
         one affine map and stay eager: it records the choice for the rollout of a braking policy's
         tail (:class:`~torchrl_brsl.safety.PlanChecker`), which follows it (:attr:`compile_options`).
 

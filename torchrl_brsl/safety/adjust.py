@@ -8,7 +8,7 @@ import torch
 from torch import Tensor
 
 from torchrl_brsl.safety.plan_check import FUSE_FROM_STEPS, AffineRollout, Gauge, PlanChecker, PlanEvaluation
-from torchrl_brsl.sets import Obstacles, Zonotope
+from torchrl_brsl.sets import Obstacles
 
 
 class Adjustment(NamedTuple):
@@ -39,7 +39,7 @@ class GradientAdjuster:
     gradient as autograd, without its graph). On a local model, whose sets' sizes also depend
     on the plan, it is the gradient through the centres with the sets' generators held fixed
     (eq. (11) as the paper states it), each centre's Jacobian taken along the rollout that checks
-    the plan with each step's leaf models and relaxations held fixed (:meth:`PlanChecker.rollout_sets`
+    the plan with each step's leaf models and relaxations held fixed (:meth:`PlanChecker.evaluate_with_gauge`
     with tangents: one compiled loop per iteration when compiled, where autograd ran compiled steps
     forward and backward; ``benchmarks/bench_gradient.py``). Obstacles checked by the LP: autograd.
 
@@ -155,10 +155,9 @@ class GradientAdjuster:
     def _leaf_steps(self, checker: PlanChecker, x0: Tensor, plan: Tensor, obstacles: Obstacles,
                     start: float) -> Adjustment:
         """The iteration of :meth:`_analytic_steps` on a local model: the centres' Jacobian along the plan's own
-        sets (:func:`_leaf_rollout`, the sets' generators held fixed), from the rollout that checks it."""
+        sets (:func:`_leaf_check`, the sets' generators held fixed), from the rollout that checks it."""
         def linearise(plan: Tensor) -> tuple:
-            *rollout, jacobian = _leaf_rollout(checker, x0, plan)  # [B, T, n, P, m]
-            evaluation, gauge = checker.evaluate_with_gauge(x0, plan, obstacles, rollout=tuple(rollout))
+            evaluation, gauge, jacobian = _leaf_check(checker, x0, plan, obstacles)  # [B, T, n, P, m]
             jacobian = jacobian.flatten(-2)
             return evaluation, gauge, lambda: (jacobian[:, :, checker.position_dims],
                                                jacobian[:, -1, checker.stop_dims])
@@ -264,7 +263,7 @@ class FacetQPAdjuster:
                         obstacles: Obstacles) -> tuple[PlanEvaluation, tuple | None]:
         """:meth:`PlanChecker.evaluate` of ``plan`` ``[B, P, m]``, and what this adjuster starts from on a local model,
         from the same batch, for ``reference_rollout``: the centres' Jacobian of ``reference[:, :P]`` along its sets
-        (:func:`_leaf_rollout`), its evaluation and its :class:`Gauge`; ``None`` where it would not use them.
+        (:func:`_leaf_check`), its evaluation and its :class:`Gauge`; ``None`` where it would not use them.
 
         :class:`~torchrl_brsl.safety.SafetyDecision` calls this where the last step adjusted every env. The compiled
         plan loop with tangents pads one plan to two, so the reference rides along, its tangents costing 0.3 ms on the
@@ -275,9 +274,8 @@ class FacetQPAdjuster:
         n_envs = x0.shape[0]
         reference = reference[:, :plan.shape[1]].to(plan)
         starts, plans = x0.repeat(2, 1), torch.cat((plan, reference))
-        actions, sets, covered, jacobian = _leaf_rollout(checker, starts, plans)
-        evaluation, gauge = checker.evaluate_with_gauge(starts, plans, obstacles.expand(2, n_envs).reshape(2 * n_envs),
-                                                        rollout=(actions, sets, covered))
+        evaluation, gauge, jacobian = _leaf_check(checker, starts, plans,
+                                                  obstacles.expand(2, n_envs).reshape(2 * n_envs))
         proposal, reference_check = (PlanEvaluation(*(t[part] for t in evaluation))
                                      for part in (slice(n_envs), slice(n_envs, None)))
         return proposal, (jacobian[n_envs:], reference_check, Gauge(*(t[n_envs:] for t in gauge)))
@@ -292,10 +290,10 @@ class FacetQPAdjuster:
         if reference_rollout is not None:  # from :meth:`evaluate_paired`: the reference's Jacobian and check
             jacobian, ref_eval, gauge = reference_rollout
         else:
-            rollout = jacobian = None
-            if checker.plan_dependent:  # a local model: one rollout gives the reference's sets and their Jacobian
-                *rollout, jacobian = _leaf_rollout(checker, x0, reference)
-            ref_eval, gauge = checker.evaluate_with_gauge(x0, reference, obstacles, rollout=rollout)
+            if checker.plan_dependent:  # a local model: one rollout checks the reference and gives its Jacobian
+                ref_eval, gauge, jacobian = _leaf_check(checker, x0, reference, obstacles)
+            else:
+                (ref_eval, gauge), jacobian = checker.evaluate_with_gauge(x0, reference, obstacles), None
         affine = checker.affine_for(x0, reference)  # None for a local model
         if affine is None and _feedback_linearisable(checker, x0, reference):  # braking policy: linearised tail
             jacobian = _feedback_jacobian(checker, ref_eval.centers, horizon)  # [B, T, n, N]
@@ -480,40 +478,39 @@ def _brake_jacobian(checker: PlanChecker, states: Tensor) -> Tensor:
 
 def prepare_linearisation(checker: PlanChecker) -> None:
     """Compile the linearisation the adjusters run on ``checker``, so that no control step stalls on it: with a
-    compiled model and a braking policy, the local model's plan loop with the policy's tangents (about 30 s on a
-    2-core CPU; the constant brake's is compiled by :meth:`~torchrl_brsl.reach.DataDrivenReach.compile_steps`), or
-    the global model's Jacobian chain along a tail of :data:`~torchrl_brsl.safety.plan_check.FUSE_FROM_STEPS` or
-    more steps (a plan of :attr:`~torchrl_brsl.safety.PlanChecker.plan_steps` steps, linearised at rest: where the
-    policy's derivative vanishes there, the chain compiles at the first step that needs it). Otherwise nothing."""
-    if checker.failsafe.policy is None or checker.reach.compile_options is None:
+    compiled global model and a braking policy, the Jacobian chain along a tail of
+    :data:`~torchrl_brsl.safety.plan_check.FUSE_FROM_STEPS` or more steps (a plan of
+    :attr:`~torchrl_brsl.safety.PlanChecker.plan_steps` steps, linearised at rest: where the policy's derivative
+    vanishes there, the chain compiles at the first step that needs it). A local model linearises in its plan's loop
+    with the check (:func:`_leaf_check`), which needs the obstacles' shapes:
+    :meth:`~torchrl_brsl.safety.PlanChecker.prepare_checks` compiles it. Otherwise nothing."""
+    if checker.failsafe.policy is None or checker.reach.compile_options is None or checker.plan_dependent:
         return
-    rest = checker.action_low.new_zeros(1, checker.reach.state_dim)
     steps = checker.plan_steps
-    with torch.no_grad():
-        if checker.plan_dependent:
-            plan = checker.hold(rest).expand(1, min(2, checker.horizon), -1)  # >= 2 directions: one graph for all
-            _leaf_rollout(checker, rest, plan)
-        elif steps >= 1 and checker.failsafe.n_brk >= FUSE_FROM_STEPS:
-            plan = checker.hold(rest).expand(1, steps, -1).to(checker.reach.state_matrix.dtype)
+    if steps >= 1 and checker.failsafe.n_brk >= FUSE_FROM_STEPS:
+        rest = checker.action_low.new_zeros(1, checker.reach.state_dim)
+        plan = checker.hold(rest).expand(1, steps, -1).to(checker.reach.state_matrix.dtype)
+        with torch.no_grad():
             _feedback_jacobian(checker, checker.rollout(rest.to(plan), plan)[1], steps)
 
 
-def _leaf_rollout(checker: PlanChecker, x0: Tensor, plan: Tensor) -> tuple[Tensor, Zonotope, Tensor, Tensor]:
-    """:meth:`PlanChecker.rollout_sets` of a local model, ``(actions, sets, covered)``, and from the same
-    rollout ``d centres / d plan`` ``[B, T, n, P, m]`` along the plan's own sets.
+def _leaf_check(checker: PlanChecker, x0: Tensor, plan: Tensor, obstacles: Obstacles
+                ) -> tuple[PlanEvaluation, Gauge | None, Tensor]:
+    """:meth:`PlanChecker.evaluate_with_gauge` of a local model's ``plan`` ``[B, P, m]`` and, from the same rollout,
+    ``d centres / d plan`` ``[B, T, n, P, m]`` along the plan's own sets.
 
     Each step maps the centres' directions with the leaf models and relaxations it chose (held fixed;
-    :meth:`DataDrivenReach.reach_covered` ``tangents``, one compiled loop when compiled), and a braking
-    policy's tail with the policy's derivative at the centres (:meth:`PlanChecker.brake_tangent`): one
-    rollout, where finite differences of the whole plan need ``P m + 1``.
+    :meth:`DataDrivenReach.reach_covered` ``tangents``, in the plan's compiled loop with the check when compiled),
+    and a braking policy's tail with the policy's derivative at the centres (:meth:`PlanChecker.brake_tangent`):
+    one rollout, where finite differences of the whole plan need ``P m + 1``.
     Exact at a point set between kinks; a linearisation elsewhere (every iterate is still checked).
     """
     n_envs, plan_steps, m = plan.shape
     n_vars, n = plan_steps * m, checker.reach.state_dim
     basis = torch.eye(n_vars, dtype=plan.dtype, device=plan.device).view(plan_steps, m, n_vars)
     tangents = (plan.new_zeros(n_envs, n, n_vars), basis.expand(n_envs, -1, -1, -1))
-    actions, sets, covered, moved = checker.rollout_sets(x0, plan, tangents)
-    return actions, sets, covered, moved.reshape(n_envs, checker.horizon, n, plan_steps, m)
+    evaluation, gauge, moved = checker.evaluate_with_gauge(x0, plan, obstacles, tangents=tangents)
+    return evaluation, gauge, moved.reshape(n_envs, checker.horizon, n, plan_steps, m)
 
 
 def _centre_jacobian(checker: PlanChecker, x0: Tensor, plan: Tensor, eps: float = 1e-6) -> Tensor:

@@ -358,10 +358,10 @@ class PlanChecker:
         """Compile the closed-form check of a compiled local model's sets (:meth:`evaluate_with_gauge`) for obstacles of
         the shapes of ``obstacles`` ``[B, K, d, ...]`` (their values unused) now, not at the first control step: each
         count of obstacles and of their generators is a graph of its own (one plan, and several), 10-15 s to compile
-        on a 2-core CPU with an empty cache; so is the check in the plan's loop (:meth:`_fuses_check`), about 5 s
-        more a graph on the Turtlebot's model (inductor keeps no graph that holds a loop in its cache).
-        :class:`~torchrl_brsl.safety.BRSLSafetyLayer` calls it with its env's obstacle specs. Otherwise (eager or
-        global model, obstacles checked by the LP) nothing."""
+        on a 2-core CPU with an empty cache; so is the check in the plan's loop (:meth:`_fuses_check`), with the
+        adjusters' tangents as well, about 5 s more a graph on the Turtlebot's model (inductor keeps no graph that
+        holds a loop in its cache). :class:`~torchrl_brsl.safety.BRSLSafetyLayer` calls it with its env's obstacle
+        specs. Otherwise (eager or global model, obstacles checked by the LP) nothing."""
         if (not self.plan_dependent or self.reach.compile_options is None or self.uses_lp(obstacles)
                 or not obstacles.center.shape[-2]):
             return
@@ -376,6 +376,12 @@ class PlanChecker:
             with torch.no_grad():
                 self.evaluate(rest, plan, placeholders)
                 self.evaluate_with_gauge(rest, plan, placeholders, rollout=self.rollout_sets(rest, plan))
+        plan = self.hold(rest).expand(plans, min(2, self.horizon), -1)  # >= 2 directions: one graph for all
+        n_vars = plan.shape[1] * plan.shape[2]
+        axes = torch.eye(n_vars, **like).view(*plan.shape[1:], n_vars)
+        with torch.no_grad():  # the adjusters' linearisation (FacetQPAdjuster, GradientAdjuster)
+            self.evaluate_with_gauge(rest, plan, placeholders, tangents=(rest.new_zeros(*rest.shape, n_vars),
+                                                                         axes.expand(plans, -1, -1, -1)))
 
     def run_fused(self, function: Callable, batch: Tensor, *args, length: int,
                   fuse_from: int = FUSE_FROM_STEPS) -> Any:
@@ -532,26 +538,34 @@ class PlanChecker:
         return self.evaluate_with_gauge(x0, plan, obstacles, detail=False)[0]
 
     def evaluate_with_gauge(self, x0: Tensor, plan: Tensor, obstacles: Obstacles, detail: bool = True,
-                            rollout: tuple[Tensor, Zonotope, Tensor] | None = None
-                            ) -> tuple[PlanEvaluation, Gauge | None]:
+                            rollout: tuple[Tensor, Zonotope, Tensor] | None = None,
+                            tangents: tuple[Tensor, Tensor] | None = None) -> tuple:
         """:meth:`evaluate`, with the signed facet products, the facet attaining each value and the
         facet weights (``detail``): what the adjusters linearise (``None`` from the LP). ``rollout``:
         the plan's :meth:`rollout_sets` when already at hand (a local model); without it, a compiled local model
-        checks the plan in the loop that computes its sets (:meth:`_fuses_check`)."""
-        lp = self.uses_lp(obstacles)
+        checks the plan in the loop that computes its sets (:meth:`_fuses_check`). ``tangents``: ``(dx [B, n, k],
+        du [B, P, m, k])`` (a local model, no ``rollout``), mapped along the same rollout as :meth:`rollout_sets`
+        maps them; the centres' directions ``[B, T, n, k]`` then follow the gauge."""
+        if tangents is not None and (rollout is not None or not self.plan_dependent):
+            raise ValueError("`tangents` need a local model's own rollout (no `rollout`)")
+        lp, moved = self.uses_lp(obstacles), ()
         if self.plan_dependent and rollout is None and not lp and self._fuses_check(x0, plan):
             finish = (_checked_sets, (obstacles.center, obstacles.generators, obstacles.mask),
                       (self._position_index, self.set_width, self._stop_index, self.stop_tolerance, self.stop_slack,
                        self._threshold))
-            actions, centers, generators, covered, stop_room, values, stop_excess, safe, *gauge, full = (
-                self.rollout_sets(x0, plan, finish=finish))
+            actions, *checked = self.rollout_sets(x0, plan, tangents, finish=finish)
+            (centers, generators, covered, stop_room, values, stop_excess, safe, picked, weights, full), moved = (
+                checked[:CHECKED_SETS], tuple(checked[CHECKED_SETS:]))
             if bool(full.all()):
                 evaluation = PlanEvaluation(actions, centers, values, stop_excess, safe, stop_room, covered)
-                return self._in_domain(x0, evaluation, generators), Gauge(*gauge) if detail else None
+                return self._in_domain(x0, evaluation, generators), Gauge(picked, weights) if detail else None, *moved
             with skip_value_checks():  # pairs not certified full-dimensional: the eager check below
                 rollout = (actions, Zonotope(centers, generators), covered)
         if self.plan_dependent:
-            actions, sets, covered = self.rollout_sets(x0, plan) if rollout is None else rollout
+            if rollout is None:
+                actions, sets, covered, *moved = self.rollout_sets(x0, plan, tangents)
+            else:
+                actions, sets, covered = rollout
             centers, generators = sets.center, sets.generators
             stop_room = _stop_room(generators, self.stop_tolerance, self.stop_slack, self._stop_index)
         else:
@@ -570,7 +584,7 @@ class PlanChecker:
         values, stop_excess, safe = _verdict(values, obstacles.mask, centers, stop_room, covered, self._stop_index,
                                              self._threshold)
         evaluation = PlanEvaluation(actions, centers, values, stop_excess, safe, stop_room, covered)
-        return self._in_domain(x0, evaluation, generators), gauge
+        return self._in_domain(x0, evaluation, generators), gauge, *moved
 
     def _in_domain(self, x0: Tensor, evaluation: PlanEvaluation, generators: Tensor | None) -> PlanEvaluation:
         """``evaluation`` with the plans marked uncovered and unsafe where a step starts outside the domain a local
@@ -594,8 +608,10 @@ class PlanChecker:
         call (:meth:`DataDrivenReach.reach_covered`'s ``finish``): the model is compiled and nothing needs
         gradients. Two plans of one step and 6 braking steps on the Turtlebot's body-frame model: 0.78-0.79 instead
         of 0.95-0.98 ms a check (one core, tcmalloc), where the loop's and the check's calls took 0.38 and 0.18."""
-        return self.reach.compile_options is not None and not (
+        return self._fused_checks and self.reach.compile_options is not None and not (
             torch.is_grad_enabled() and (plan.requires_grad or x0.requires_grad))
+
+    _fused_checks = True  # the check in the plan's loop (False: after it, for comparison; benchmarks/bench_check.py)
 
     def uses_lp(self, obstacles: Obstacles) -> bool:
         """Whether ``obstacles`` are checked by the LP (``collision``): polytopes, or a space beyond 3-D."""
@@ -783,6 +799,10 @@ def _plan_gauge(generators: Tensor, centers: Tensor, obstacle_centers: Tensor, o
     facets = split_pair_facets(projected, obstacle_generators.unsqueeze(-4))
     offsets = obstacle_centers.unsqueeze(-3) - _take(centers, index).unsqueeze(-2)  # [B, T, K, d]
     return (*pair_gauge(offsets, facets), facets.full)
+
+
+CHECKED_SETS = 10
+"""How many results :func:`_checked_sets` gives."""
 
 
 def _checked_sets(centers: Tensor, generators: Tensor, covered: Tensor, obstacle_centers: Tensor,
