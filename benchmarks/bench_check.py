@@ -87,21 +87,22 @@ def main() -> None:
     data = collect_offline_data(envs.make(TASK, empty=True, seed=1), args.data)
     reach = DataDrivenReach.from_data(data, noise, translation_invariant_dims=info.position_dims, max_generators=30,
                                       body_frame=BodyFrame(info.position_dims, info.heading_dims)).compile_steps()
-    safe, adjusting = (make_layer(reach, info, adjuster, 1) for adjuster in (GradientAdjuster(), FacetQPAdjuster()))
+    probe, safe, adjusting = (make_layer(reach, info, adjuster, 1)
+                              for adjuster in (FacetQPAdjuster(), GradientAdjuster(), FacetQPAdjuster()))
     start = time.perf_counter()
-    env = TransformedEnv(envs.make(TASK, seed=0, episode_steps=10_000), adjusting)  # compiles the checks
+    env = TransformedEnv(envs.make(TASK, seed=0, episode_steps=10_000), probe)  # compiles the checks
     print(f"{TASK}, body-frame local model ({args.data} offline steps), compiled; one CPU thread, {malloc_name()}; "
           f"the layer's checks compiled in {time.perf_counter() - start:.0f} s")
     print(f"{'':<44}" + "".join(f"{way:>14}" for way in WAYS) + f"{'ratio':>9}")
     generator = torch.Generator().manual_seed(0)
     with torch.no_grad():
         for plans in (1, 2, 4):
-            checker, x0, plan, obstacles = check_inputs(adjusting, env, plans, generator)
+            checker, x0, plan, obstacles = check_inputs(probe, env, plans, generator)
             row = alternated(lambda: checker.evaluate(x0, plan, obstacles), args.calls, args.repeats)
             print(f"{f'check of {plans} plan(s), µs':<44}" + "".join(f"{t:>14.0f}" for t in row.values())
                   + f"{row['after it'] / row['in the loop']:>9.2f}")
         for plans in (2, 4):
-            checker, x0, plan, obstacles = check_inputs(adjusting, env, plans, generator)
+            checker, x0, plan, obstacles = check_inputs(probe, env, plans, generator)
             row = alternated(lambda: _leaf_check(checker, x0, plan, obstacles), args.calls, args.repeats)
             print(f"{f'linearised check of {plans} plans, µs':<44}" + "".join(f"{t:>14.0f}" for t in row.values())
                   + f"{row['after it'] / row['in the loop']:>9.2f}")
