@@ -7,7 +7,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchrl_brsl.safety.plan_check import FUSE_FROM_STEPS, AffineRollout, Gauge, PlanChecker, PlanEvaluation
+from torchrl_brsl.safety.plan_check import (FUSE_FROM_STEPS, AffineRollout, Gauge, PlanChecker, PlanEvaluation,
+                                             plan_axes)
 from torchrl_brsl.sets import Obstacles
 
 
@@ -505,12 +506,9 @@ def _leaf_check(checker: PlanChecker, x0: Tensor, plan: Tensor, obstacles: Obsta
     one rollout, where finite differences of the whole plan need ``P m + 1``.
     Exact at a point set between kinks; a linearisation elsewhere (every iterate is still checked).
     """
-    n_envs, plan_steps, m = plan.shape
-    n_vars, n = plan_steps * m, checker.reach.state_dim
-    basis = torch.eye(n_vars, dtype=plan.dtype, device=plan.device).view(plan_steps, m, n_vars)
-    tangents = (plan.new_zeros(n_envs, n, n_vars), basis.expand(n_envs, -1, -1, -1))
-    evaluation, gauge, moved = checker.evaluate_with_gauge(x0, plan, obstacles, tangents=tangents)
-    return evaluation, gauge, moved.reshape(n_envs, checker.horizon, n, plan_steps, m)
+    evaluation, gauge, moved = checker.evaluate_with_gauge(x0, plan, obstacles,
+                                                           tangents=plan_axes(plan, checker.reach.state_dim))
+    return evaluation, gauge, moved.reshape(*moved.shape[:3], *plan.shape[1:])
 
 
 def _centre_jacobian(checker: PlanChecker, x0: Tensor, plan: Tensor, eps: float = 1e-6) -> Tensor:

@@ -376,12 +376,9 @@ class PlanChecker:
             with torch.no_grad():
                 self.evaluate(rest, plan, placeholders)
                 self.evaluate_with_gauge(rest, plan, placeholders, rollout=self.rollout_sets(rest, plan))
-        plan = self.hold(rest).expand(plans, min(2, self.horizon), -1)  # >= 2 directions: one graph for all
-        n_vars = plan.shape[1] * plan.shape[2]
-        axes = torch.eye(n_vars, **like).view(*plan.shape[1:], n_vars)
-        with torch.no_grad():  # the adjusters' linearisation (FacetQPAdjuster, GradientAdjuster)
-            self.evaluate_with_gauge(rest, plan, placeholders, tangents=(rest.new_zeros(*rest.shape, n_vars),
-                                                                         axes.expand(plans, -1, -1, -1)))
+                if plans > 1:  # the adjusters' linearisation, which pads one plan to two: >= 2 directions
+                    plan = self.hold(rest).expand(plans, min(2, self.horizon), -1)
+                    self.evaluate_with_gauge(rest, plan, placeholders, tangents=plan_axes(plan, self.reach.state_dim))
 
     def run_fused(self, function: Callable, batch: Tensor, *args, length: int,
                   fuse_from: int = FUSE_FROM_STEPS) -> Any:
@@ -606,8 +603,8 @@ class PlanChecker:
     def _fuses_check(self, x0: Tensor, plan: Tensor) -> bool:
         """Whether the closed-form check of a local model's plan runs in the plan's compiled loop, one graph and one
         call (:meth:`DataDrivenReach.reach_covered`'s ``finish``): the model is compiled and nothing needs
-        gradients. Two plans of one step and 6 braking steps on the Turtlebot's body-frame model: 0.78-0.79 instead
-        of 0.95-0.98 ms a check (one core, tcmalloc), where the loop's and the check's calls took 0.38 and 0.18."""
+        gradients. Two plans of one action and 6 braking steps on the Turtlebot's body-frame model: 0.73-0.75 instead
+        of 0.91-0.95 ms a check, one plan 0.52-0.53 instead of 0.71-0.73 (``benchmarks/bench_check.py``)."""
         return self._fused_checks and self.reach.compile_options is not None and not (
             torch.is_grad_enabled() and (plan.requires_grad or x0.requires_grad))
 
@@ -799,6 +796,14 @@ def _plan_gauge(generators: Tensor, centers: Tensor, obstacle_centers: Tensor, o
     facets = split_pair_facets(projected, obstacle_generators.unsqueeze(-4))
     offsets = obstacle_centers.unsqueeze(-3) - _take(centers, index).unsqueeze(-2)  # [B, T, K, d]
     return (*pair_gauge(offsets, facets), facets.full)
+
+
+def plan_axes(plan: Tensor, state_dim: int) -> tuple[Tensor, Tensor]:
+    """The tangents ``(dx [B, n, N], du [B, P, m, N])`` of :meth:`PlanChecker.rollout_sets` along every variable of
+    ``plan`` ``[B, P, m]`` (``N = P m``; the start held fixed): the centres' directions are ``d centres / d plan``."""
+    n_envs, plan_steps, m = plan.shape
+    axes = torch.eye(plan_steps * m, dtype=plan.dtype, device=plan.device).view(plan_steps, m, plan_steps * m)
+    return plan.new_zeros(n_envs, state_dim, plan_steps * m), axes.expand(n_envs, -1, -1, -1)
 
 
 CHECKED_SETS = 10
