@@ -27,12 +27,12 @@ from torchrl.envs import TransformedEnv
 
 sys.path.insert(0, str(Path(__file__).parent))
 import envs  # noqa: E402
-from bench_layer import N_OBSTACLES, TASK, episode_times, make_layer, shares, stats  # noqa: E402
+from bench_layer import N_OBSTACLES, TASK, episode_times, make_layer, offline_data, shares, stats  # noqa: E402
 from torchrl_brsl._malloc import malloc_name  # noqa: E402
-from torchrl_brsl.reach import BodyFrame, DataDrivenReach, collect_offline_data  # noqa: E402
+from torchrl_brsl.reach import BodyFrame, DataDrivenReach  # noqa: E402
 from torchrl_brsl.safety import FacetQPAdjuster, GradientAdjuster, PlanChecker  # noqa: E402
 from torchrl_brsl.safety.adjust import _leaf_check  # noqa: E402
-from torchrl_brsl.sets import Obstacles, Zonotope  # noqa: E402
+from torchrl_brsl.sets import Obstacles  # noqa: E402
 
 WAYS = {"in the loop": True, "after it": False}
 
@@ -80,11 +80,7 @@ def main() -> None:
     parser.add_argument("--calls", type=int, default=500, help="calls per timing round of a check")
     parser.add_argument("--repeats", type=int, default=3, help="times each way is timed, alternated")
     args = parser.parse_args()
-    torch.set_num_threads(1)
-    torch.manual_seed(0)
-    info = envs.safety_info(TASK)
-    noise = Zonotope(info.noise_center.double(), info.noise_generators.double())
-    data = collect_offline_data(envs.make(TASK, empty=True, seed=1), args.data)
+    info, noise, data = offline_data(args.data)
     reach = DataDrivenReach.from_data(data, noise, translation_invariant_dims=info.position_dims, max_generators=30,
                                       body_frame=BodyFrame(info.position_dims, info.heading_dims)).compile_steps()
     probe, safe, adjusting = (make_layer(reach, info, adjuster, 1)

@@ -92,6 +92,15 @@ def shares(flags: dict[str, list[bool]], first: int) -> str:
     return "".join(f"{value:>9.0f}" for value in step_shares(flags, first).values())
 
 
+def offline_data(steps: int) -> tuple:
+    """One thread, seeded: the task's safety info, its noise zonotope (float64) and ``steps`` offline transitions."""
+    torch.set_num_threads(1)
+    torch.manual_seed(0)
+    info = envs.safety_info(TASK)
+    noise = Zonotope(info.noise_center.double(), info.noise_generators.double())
+    return info, noise, collect_offline_data(envs.make(TASK, empty=True, seed=1), steps)
+
+
 def stats(times: list[float]) -> tuple[float, float]:
     ordered = sorted(times)
     return 1e3 * statistics.median(ordered), 1e3 * ordered[min(len(ordered) - 1, int(0.99 * len(ordered)))]
@@ -105,11 +114,7 @@ def main() -> None:
     parser.add_argument("--n-plan", type=int, default=N_PLAN,
                         help="planned steps before braking (1: the recipes' default, one action then braking)")
     args = parser.parse_args()
-    torch.set_num_threads(1)
-    torch.manual_seed(0)
-    info = envs.safety_info(TASK)
-    noise = Zonotope(info.noise_center.double(), info.noise_generators.double())
-    data = collect_offline_data(envs.make(TASK, empty=True, seed=1), args.data)
+    info, noise, data = offline_data(args.data)
     steps = 30 if args.quick else 120
     rows, flag_shares = {}, {}
     methods = METHODS + (COMPILED if args.compile else ())
