@@ -9,7 +9,7 @@ from torch._dynamo.utils import counters
 
 from torchrl_brsl.collision import ZonotopeCollisionChecker
 from torchrl_brsl.reach import DataDrivenReach, DoubleIntegrator, KinematicBicycle
-from torchrl_brsl.safety import FacetQPAdjuster, Failsafe, GradientAdjuster, PlanChecker, SafetyDecision
+from torchrl_brsl.safety import FacetQPAdjuster, Failsafe, GradientAdjuster, PlanChecker, SafetyDecision, plan_check
 from torchrl_brsl.safety.adjust import _centre_jacobian, _closed_form_gradient, _leaf_check, _project_polytope
 from torchrl_brsl.sets import Zonotope
 
@@ -289,6 +289,33 @@ def test_the_compiled_linearisation_along_a_braking_policy_is_prepared_with_the_
         for new, old in zip((*got[0], *got[1], got[2]), (*expected[0], *expected[1], expected[2])):
             torch.testing.assert_close(new, old, rtol=1e-9, atol=1e-12)
     assert counters["frames"]["ok"] == frames  # compiled with the checks
+
+
+def test_pairs_the_loops_check_cannot_certify_are_checked_eagerly(monkeypatch):
+    """Where the check in the plan's compiled loop cannot certify every pair as full-dimensional, the plan is checked
+    eagerly from the loop's sets, as the eager checker checks them, without running the compiled gauge again."""
+    bicycle, eager = bicycle_checker(policy=False)
+    reach = copy.deepcopy(eager.reach).compile_steps(backend="aot_eager")
+    checker = PlanChecker(reach, eager.failsafe, eager.horizon, stop_dims=(3,), stop_slack=0.1,
+                          action_low=bicycle.action_low, action_high=bicycle.action_high)
+    real = plan_check._checked_sets
+
+    def uncertified(*args):
+        *checked, full = real(*args)
+        return (*checked, torch.zeros_like(full))
+
+    compiled = []
+    monkeypatch.setattr(plan_check, "_checked_sets", uncertified)
+    monkeypatch.setattr(checker, "_compiled", lambda function, *args, **kwargs: compiled.append(function))
+    gen = torch.Generator().manual_seed(5)
+    x0, plan = bicycle.sample_states(3, gen) * 0.3, bicycle.sample_actions(3, N_PLAN, generator=gen) * 0.5
+    obstacles = obstacles_of(*scene()[2:])
+    got, got_gauge = checker.evaluate_with_gauge(x0, plan, obstacles)
+    want, want_gauge = eager.evaluate_with_gauge(x0, plan, obstacles, rollout=checker.rollout_sets(x0, plan))
+    assert bool(((want.values > 0) & torch.isfinite(want.values)).any())
+    for new, old in zip((*got, *got_gauge), (*want, *want_gauge)):
+        torch.testing.assert_close(new, old, rtol=1e-12, atol=1e-12)
+    assert not compiled  # the loop's gauge said no: not asked again
 
 
 @pytest.mark.parametrize("policy", [False, True])

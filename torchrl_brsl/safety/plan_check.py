@@ -545,19 +545,19 @@ class PlanChecker:
         maps them; the centres' directions ``[B, T, n, k]`` then follow the gauge."""
         if tangents is not None and (rollout is not None or not self.plan_dependent):
             raise ValueError("`tangents` need a local model's own rollout (no `rollout`)")
-        lp, moved = self.uses_lp(obstacles), ()
+        lp, moved, compiled_gauge = self.uses_lp(obstacles), (), True
         if self.plan_dependent and rollout is None and not lp and self._fuses_check(x0, plan):
             finish = (_checked_sets, (obstacles.center, obstacles.generators, obstacles.mask),
                       (self._position_index, self.set_width, self._stop_index, self.stop_tolerance, self.stop_slack,
                        self._threshold))
             actions, *checked = self.rollout_sets(x0, plan, tangents, finish=finish)
-            (centers, generators, covered, stop_room, values, stop_excess, safe, picked, weights, full), moved = (
-                checked[:CHECKED_SETS], tuple(checked[CHECKED_SETS:]))
+            moved = (checked.pop(),) if tangents is not None else ()
+            centers, generators, covered, stop_room, values, stop_excess, safe, picked, weights, full = checked
             if bool(full.all()):
                 evaluation = PlanEvaluation(actions, centers, values, stop_excess, safe, stop_room, covered)
                 return self._in_domain(x0, evaluation, generators), Gauge(picked, weights) if detail else None, *moved
             with skip_value_checks():  # pairs not certified full-dimensional: the eager check below
-                rollout = (actions, Zonotope(centers, generators), covered)
+                rollout, compiled_gauge = (actions, Zonotope(centers, generators), covered), False
         if self.plan_dependent:
             if rollout is None:
                 actions, sets, covered, *moved = self.rollout_sets(x0, plan, tangents)
@@ -574,7 +574,7 @@ class PlanChecker:
             projected = self._projected(generators) if self.plan_dependent else self.set_generators.to(centers)
             values, gauge = _lp_values(positions, projected, obstacles), None
         elif self.plan_dependent:
-            values, gauge = self._plan_values(generators, centers, obstacles, detail)
+            values, gauge = self._plan_values(generators, centers, obstacles, detail, compiled_gauge)
         else:
             self.checker(obstacles.generators)
             values, gauge = self._closed_form_values(positions, obstacles, detail)
@@ -619,10 +619,11 @@ class PlanChecker:
                              "use collision='lp' or 'auto'")
         return self.collision == "lp" or needs_lp
 
-    def _plan_values(self, generators: Tensor, centers: Tensor, obstacles: Obstacles,
-                     detail: bool) -> tuple[Tensor, Gauge | None]:
+    def _plan_values(self, generators: Tensor, centers: Tensor, obstacles: Obstacles, detail: bool,
+                     compiled: bool = True) -> tuple[Tensor, Gauge | None]:
         """``v*`` ``[B, T, K]`` of plan-dependent sets ``Z(centers [B, T, n], generators [B, T, n, p])`` by the closed
-        form, with the :class:`Gauge` when ``detail``.
+        form, with the :class:`Gauge` when ``detail``; ``compiled=False``: eagerly (the compiled gauge could not
+        certify these pairs).
 
         Where the model's steps are compiled and no centre needs gradients, the whole check (the sets' projections,
         their facets against the obstacles' and the gauges) runs as one compiled graph (:func:`_plan_gauge`; one
@@ -630,7 +631,8 @@ class PlanChecker:
         the first check. Pairs it cannot certify as full-dimensional (none where the sets carry noise) and every other
         case are checked eagerly, facet data first (:meth:`_plan_facets`)."""
         gauged = None
-        if self.reach.compile_options is not None and not (torch.is_grad_enabled() and centers.requires_grad):
+        if compiled and self.reach.compile_options is not None and not (
+                torch.is_grad_enabled() and centers.requires_grad):
             gauged = self._compiled(_plan_gauge, (generators, centers, obstacles.center, obstacles.generators),
                                     self._position_index, self.set_width, cpp_wrapper=True, single=True)
         if gauged is not None and bool(gauged[-1].all()):
@@ -804,10 +806,6 @@ def plan_axes(plan: Tensor, state_dim: int) -> tuple[Tensor, Tensor]:
     n_envs, plan_steps, m = plan.shape
     axes = torch.eye(plan_steps * m, dtype=plan.dtype, device=plan.device).view(plan_steps, m, plan_steps * m)
     return plan.new_zeros(n_envs, state_dim, plan_steps * m), axes.expand(n_envs, -1, -1, -1)
-
-
-CHECKED_SETS = 10
-"""How many results :func:`_checked_sets` gives."""
 
 
 def _checked_sets(centers: Tensor, generators: Tensor, covered: Tensor, obstacle_centers: Tensor,
