@@ -412,11 +412,20 @@ class DataDrivenReach(nn.Module):
         if not self.plan_dependent:
             sets = self.reach(initial, actions)
             return sets, torch.ones(sets.batch_size[:-1], dtype=torch.bool, device=sets.center.device)
+        return self._covered_sets(initial.center, initial.generators, actions, tangents, brake, finish)
+
+    def _covered_sets(self, center: Tensor, generators: Tensor | None, actions: Tensor,
+                      tangents: tuple[Tensor, Tensor] | None = None, brake: tuple | None = None,
+                      finish: tuple | None = None) -> tuple:
+        """:meth:`reach_covered` of a local model from ``Z(center [..., n], generators [..., n, p])`` (``None``: the
+        point ``center``), its arguments unchecked: the control loop's path, whose states and plans the safety
+        decision has checked already (a ``Zonotope`` and its value checks cost a tenth of a compiled check)."""
         dtype = self.state_matrix.dtype
-        actions = actions.to(dtype)
-        batch = broadcast_shapes(initial.batch_size, actions.shape[:-2])
-        center = initial.center.to(dtype).expand(*batch, self.state_dim)
-        generators = initial.generators.to(dtype).expand(*batch, *initial.generators.shape[-2:])
+        actions, center = actions.to(dtype), center.to(dtype)
+        generators = center.new_zeros(*center.shape, 0) if generators is None else generators.to(dtype)
+        batch = broadcast_shapes(center.shape[:-1], generators.shape[:-2], actions.shape[:-2])
+        center = center.expand(*batch, self.state_dim)
+        generators = generators.expand(*batch, *generators.shape[-2:])
         return self._local_step().plan_sets(center, generators, actions, tangents, brake, finish)
 
     def step_sets(self, center: Tensor, generators: Tensor, action: Tensor,

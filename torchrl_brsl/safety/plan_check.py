@@ -452,15 +452,15 @@ class PlanChecker:
         n_tail = self.horizon - plan.shape[-2]
         if n_tail < 0:
             raise ValueError(f"the plan has {plan.shape[-2]} steps, more than the horizon T={self.horizon}")
-        initial = Zonotope.from_point(x0.to(plan.dtype))
+        x0 = x0.to(plan.dtype)  # the start: a point (the sets from it: DataDrivenReach.reach_covered, unchecked)
         if self.failsafe.policy is None:
             actions = torch.cat((plan, self.hold(plan).expand(plan.shape[0], n_tail, -1)), dim=1)
             if tangents is not None:  # the constant brake's actions do not move
                 du = tangents[1]
                 tangents = (tangents[0], torch.cat((du, du.new_zeros(*du.shape[:-3], n_tail, *du.shape[-2:])), -3))
-            return (actions, *self.reach.reach_covered(initial, actions, tangents, finish=finish))
+            return (actions, *self.reach._covered_sets(x0, None, actions, tangents, finish=finish))
         brake = (self._tail_brake(plan), n_tail) + ((self._tail_brake_tangent(plan),) if tangents is not None else ())
-        *result, actions = self.reach.reach_covered(initial, plan, tangents, brake, finish)
+        *result, actions = self.reach._covered_sets(x0, None, plan, tangents, brake, finish)
         return (actions, *result)
 
     def _tail_brake(self, like: Tensor) -> Callable[[Tensor], Tensor]:
