@@ -4,7 +4,7 @@ import math
 import pytest
 import torch
 
-from torchrl_brsl.sets import (Zonotope, inflate_box, inflate_disc, inflate_polygon, obstacle_batch,
+from torchrl_brsl.sets import (Obstacles, Zonotope, inflate_box, inflate_disc, inflate_polygon, obstacle_batch,
                                regular_polygon_generators)
 
 GEN = torch.Generator().manual_seed(0)
@@ -112,6 +112,18 @@ def test_obstacle_batch_pads_slots_and_generators():
     assert not obstacles["generators"][1, :, 2:].any() and not obstacles["center"][2:].any()
     empty = obstacle_batch([], capacity=0)
     assert empty["center"].shape == (0, 2) and empty["mask"].shape == (0,)
+
+
+def test_a_repeated_batch_is_the_batch_copy_after_copy():
+    center, generators = torch.randn(3, 4, 2, generator=GEN), torch.randn(3, 4, 2, 5, generator=GEN)
+    mask = torch.rand(3, 4, generator=GEN) > 0.5
+    matrix, offset = torch.randn(3, 4, 1, 5, generator=GEN), torch.randn(3, 4, 1, generator=GEN)
+    for extra in ((), (matrix, offset)):
+        obstacles = Obstacles(center, generators, mask, *extra)
+        repeated, expected = obstacles.repeat(2), obstacles.expand(2, 3).reshape(6)
+        assert repeated.batch_size == (6,)
+        for got, want in zip(vars(repeated).values(), vars(expected).values()):
+            assert (got is None and want is None) or torch.equal(got, want)
 
 
 def test_bad_arguments_are_clear_errors():

@@ -276,7 +276,7 @@ class FacetQPAdjuster:
         reference = reference[:, :plan.shape[1]].to(plan)
         starts, plans = x0.repeat(2, 1), torch.cat((plan, reference))
         evaluation, gauge, jacobian = _leaf_check(checker, starts, plans,
-                                                  obstacles.expand(2, n_envs).reshape(2 * n_envs))
+                                                  obstacles.repeat(2))
         proposal, reference_check = (PlanEvaluation(*(t[part] for t in evaluation))
                                      for part in (slice(n_envs), slice(n_envs, None)))
         return proposal, (jacobian[n_envs:], reference_check, Gauge(*(t[n_envs:] for t in gauge)))
@@ -411,9 +411,10 @@ def _first_safe(checker: PlanChecker, x0: Tensor, reference: Tensor, step: Tenso
             continue
         count, size = len(tried), len(todo)
         halving = 2.0 ** -torch.arange(tried.start, tried.stop, dtype=step.dtype, device=step.device)
-        candidates = (reference[todo] + halving.view(-1, 1, 1, 1) * step[todo]).flatten(0, 1)  # [A b, P, m]
-        batch = obstacles[todo].expand(count, size).reshape(count * size)
-        evaluation = checker.evaluate(x0[todo].repeat(count, 1), candidates, batch)
+        starts, refs, steps, batch = ((x0, reference, step, obstacles) if size == n_envs  # every env: no copies
+                                      else (x0[todo], reference[todo], step[todo], obstacles[todo]))
+        candidates = (refs + halving.view(-1, 1, 1, 1) * steps).flatten(0, 1)  # [A b, P, m]
+        evaluation = checker.evaluate(starts.repeat(count, 1), candidates, batch.repeat(count))
         safe = evaluation.safe.view(count, size)
         found, taken = safe.any(0), safe.to(torch.uint8).argmax(0)  # [b]: the first safe candidate's row
         envs, pick = todo[found], (taken * size + torch.arange(size, device=step.device))[found]

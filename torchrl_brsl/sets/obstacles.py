@@ -125,6 +125,11 @@ class Obstacles:
         """The batch expanded to ``shape`` (views, as :meth:`torch.Tensor.expand`)."""
         return self._map(lambda t, k: t.expand(*shape, *t.shape[t.ndim - k:]))
 
+    def repeat(self, count: int) -> Obstacles:
+        """The batch ``[B, ...]`` repeated ``count`` times along its first dim: ``[count B, ...]``, copy after copy
+        (one copy per plan of a batch of candidates, as :meth:`torch.Tensor.repeat`)."""
+        return self._map(lambda t, _: t.repeat(count, *[1] * (t.ndim - 1)))
+
     def reshape(self, *shape: int) -> Obstacles:
         """The batch reshaped to ``shape``."""
         return self._map(lambda t, k: t.reshape(*shape, *t.shape[t.ndim - k:]))
