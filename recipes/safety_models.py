@@ -33,8 +33,8 @@ class SafetyModels(NamedTuple):
             method = cfg.task.safety.get("reach", "global")
         options = {"translation_invariant_dims": info.position_dims, "max_generators": cfg.method.max_generators,
                    "method": method, "progress": bool(cfg.get("progress", False))}
-        if method == "local" and info.heading_dims and cfg.method.get("body_frame", True):
-            options["body_frame"] = BodyFrame(info.position_dims, info.heading_dims)
+        body_frame = method == "local" and info.heading_dims and cfg.method.get("body_frame", True)
+        options["body_frame"] = BodyFrame(info.position_dims, info.heading_dims) if body_frame else None
         reach = DataDrivenReach.from_data(offline_data(cfg.task, cache_dir, cfg.seed), noise, **options)
         local = None
         if cfg.task.get("local") is not None:

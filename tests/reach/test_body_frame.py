@@ -1,9 +1,12 @@
 """Body-frame (yaw-invariant) fits: the rotation's enclosure, soundness on sampled robots, tightness, errors."""
+import math
+
 import pytest
 import torch
 
-from torchrl_brsl.reach import BodyFrame, DataDrivenReach, KinematicBicycle, Unicycle, points_outside, sample_reach
-from torchrl_brsl.reach import cells, hinges
+from torchrl_brsl.reach import (BlackBoxSystem, BodyFrame, CappedVelocityServo, DataDrivenReach, DoubleIntegrator,
+                                KinematicBicycle, SaturatedThrustPoint, Unicycle, points_outside, sample_reach)
+from torchrl_brsl.reach import body_frame, cells, hinges
 from torchrl_brsl.sets import Zonotope
 
 from reach_support import sampled, shared_fit
@@ -83,7 +86,7 @@ def test_the_body_frame_is_tighter_on_the_bicycle():
     system = KinematicBicycle()
     for num, limit in ((500, 5.5), (2000, 5.0)):
         body = sampled(system, shared_fit(system, num, body_frame=system.body_frame)).median_ratio
-        world = sampled(system, shared_fit(system, num)).median_ratio
+        world = sampled(system, shared_fit(system, num, body_frame=None)).median_ratio
         assert body < limit and body < 0.7 * world, (num, body, world)
 
 
@@ -107,7 +110,67 @@ def test_body_frame_sets_are_differentiable_in_the_plan():
     assert plan.grad is not None and torch.isfinite(plan.grad).all() and plan.grad.abs().sum() > 0
 
 
+def _detected(system, num: int, seed: int, vector: bool = False):
+    x, xp, u = system.offline_data(num, torch.Generator().manual_seed(seed))
+    if vector:  # the heading stored as (cos θ, sin θ): (x, y, cos θ, sin θ, v)
+        x, xp = ((s[:, :2], s[:, 2:3].cos(), s[:, 2:3].sin(), s[:, 3:]) for s in (x, xp))
+        x, xp = torch.cat(tuple(x), -1), torch.cat(tuple(xp), -1)
+    return BodyFrame.detect(x, xp, u, system.translation_invariant_dims)
+
+
+@pytest.mark.parametrize("num", [200, 500, 2000])
+def test_the_heading_is_detected_from_the_data(num):
+    for seed in range(3):
+        assert _detected(KinematicBicycle(), num, seed) == BodyFrame((0, 1), 2)
+        assert _detected(Unicycle(), num, seed) == BodyFrame((0, 1), 2)
+        assert _detected(Unicycle(), num, seed, vector=True) == BodyFrame((0, 1), (2, 3))
+        for system in (DoubleIntegrator(), SaturatedThrustPoint(), CappedVelocityServo()):
+            assert _detected(system, num, seed) is None, type(system).__name__
+
+
+class _NorthSensingCar(BlackBoxSystem):
+    """A unicycle that also reports its northward speed, a world-frame quantity: ``(x, y, θ, v, north)``."""
+
+    def __init__(self):
+        d = torch.float64
+        high, ones = torch.tensor([1.0, 1.0, math.pi, 1.0, 1.0], dtype=d), torch.ones(2, dtype=d)
+        low = torch.cat((-high[:3], torch.tensor([0.0, -1.0], dtype=d)))
+        super().__init__(dt=0.1, state_low=low, state_high=high, action_low=-ones, action_high=ones,
+                         noise_half_width=torch.full((5,), 0.002, dtype=d), translation_invariant_dims=(0, 1))
+
+    def dynamics(self, x, u):
+        theta, v = x[..., 2], (x[..., 3] + 0.1 * u[..., 0]).clamp(0.0, 1.0)
+        return torch.stack((x[..., 0] + 0.1 * v * theta.cos(), x[..., 1] + 0.1 * v * theta.sin(),
+                            theta + 0.1 * u[..., 1], v, 0.5 * x[..., 4] + 0.5 * v * theta.sin()), -1)
+
+
+def test_a_robot_with_a_world_frame_state_gets_no_frame(monkeypatch):
+    """The body frame rotates the position (and a heading vector) only: a state that turns with the heading needs
+    the heading among its inputs. Teeth: without that check the frame is taken."""
+    system = _NorthSensingCar()
+    cases = [(num, seed) for num in (500, 2000) for seed in range(3)]
+    assert all(_detected(system, num, seed) is None for num, seed in cases)
+    monkeypatch.setattr(body_frame, "HEADING_FREE_RATIO", float("inf"))
+    assert all(_detected(system, num, seed) == BodyFrame((0, 1), 2) for num, seed in cases)
+
+
+def test_the_fit_takes_the_frame_the_data_show_by_default():
+    system = KinematicBicycle()
+    x, xp, u = system.offline_data(200, torch.Generator().manual_seed(0))
+    fits = {frame: DataDrivenReach.fit(x, xp, u, system.noise, translation_invariant_dims=(0, 1), max_generators=12,
+                                       **({} if frame == "default" else {"body_frame": frame}))
+            for frame in ("default", None, system.body_frame)}
+    assert fits["default"].body_frame == system.body_frame and fits[None].body_frame is None
+    x0, plan = torch.tensor([[0.0, 0.0, 2.0, 0.8]], dtype=torch.float64), torch.full((1, 4, 2), 0.2).double()
+    sets = {frame: reach.reach(Zonotope.from_point(x0), plan) for frame, reach in fits.items()}
+    assert torch.equal(sets["default"].generators, sets[system.body_frame].generators)
+    assert not torch.equal(sets["default"].generators, sets[None].generators)
+    globally = DataDrivenReach.fit(x, xp, u, system.noise, translation_invariant_dims=(0, 1), method="global")
+    assert globally.body_frame is None
+
+
 @pytest.mark.parametrize("kwargs, message", [
+    (dict(body_frame="yes"), "'auto' or None"),
     (dict(body_frame=BodyFrame((0, 1), 2), method="global"), "method='local'"),
     (dict(body_frame=BodyFrame((0, 3), 2)), "translation_invariant_dims"),
     (dict(body_frame=BodyFrame((0, 1), 7)), "state indices"),

@@ -99,8 +99,9 @@ class DataDrivenReach(nn.Module):
     def fit(cls, x_minus, x_plus, u_minus, noise: Zonotope, translation_invariant_dims: Sequence[int] = (),
             max_generators: int | None = None, n_neighbors: int = 10, lipschitz_margin: float | None = None,
             domain: tuple | str | None = None, method: str = "local", leaf_size: int | None = None,
-            overlap: float = 0.15, extend: float = 0.25, features: bool = True, body_frame: BodyFrame | None = None,
-            held_out_folds: int = 0, progress: bool = False, dtype: torch.dtype = torch.float64) -> DataDrivenReach:
+            overlap: float = 0.15, extend: float = 0.25, features: bool = True,
+            body_frame: BodyFrame | str | None = "auto", held_out_folds: int = 0, progress: bool = False,
+            dtype: torch.dtype = torch.float64) -> DataDrivenReach:
         """Fit the model and its error zonotope from offline transitions.
 
         Args:
@@ -134,6 +135,9 @@ class DataDrivenReach(nn.Module):
                 (:class:`~torchrl_brsl.reach.body_frame.BodyFrame`): the local model then fits the
                 position step (and a heading vector) in the body frame, without the heading among
                 its inputs, and rotates it by the heading set at every step. ``method="local"`` only.
+                ``"auto"`` (default): the frame the data show (:meth:`BodyFrame.detect
+                <torchrl_brsl.reach.body_frame.BodyFrame.detect>`; the fitted model's ``body_frame``
+                says which, ``None`` where none), none for ``method="global"``; ``None``: the world frame.
             held_out_folds: ``method="local"``: after the fit, bound each of this many parts of the data
                 with cells fitted on the rest (:func:`~torchrl_brsl.reach.cells.held_out_factors`) and
                 widen the error bound of each leaf that holds a held-out transition outside its bound by
@@ -148,7 +152,9 @@ class DataDrivenReach(nn.Module):
         """
         if method not in METHODS:
             raise ValueError(f"`method` must be one of {METHODS}, got {method!r}")
-        if body_frame is not None and method != "local":
+        if isinstance(body_frame, str) and body_frame != "auto":
+            raise ValueError(f"`body_frame` must be a BodyFrame, 'auto' or None, got {body_frame!r}")
+        if body_frame is not None and body_frame != "auto" and method != "local":
             raise ValueError(f"`body_frame` needs method='local' (the global model is one affine map), got {method!r}")
         x_minus = _rows("x_minus", x_minus, dtype)
         x_plus = _rows("x_plus", x_plus, dtype)
@@ -171,6 +177,8 @@ class DataDrivenReach(nn.Module):
         dims = tuple(translation_invariant_dims)
         if len(fixed) != len(dims) or any(not -n <= d < n for d in dims):
             raise ValueError(f"`translation_invariant_dims`={dims} must be distinct state indices < {n}")
+        if body_frame == "auto":
+            body_frame = BodyFrame.detect(x_minus, x_plus, u_minus, fixed) if method == "local" else None
         if body_frame is not None:
             body_frame.check(n, tuple(fixed))
         heading = () if body_frame is None else body_frame.heading_dims
