@@ -154,6 +154,13 @@ def test_a_robot_with_a_world_frame_state_gets_no_frame(monkeypatch):
     assert all(_detected(system, num, seed) == BodyFrame((0, 1), 2) for num, seed in cases)
 
 
+def test_too_few_transitions_show_no_frame():
+    system = KinematicBicycle()
+    x, xp, u = system.offline_data(200, torch.Generator().manual_seed(0))
+    assert BodyFrame.detect(x[:49], xp[:49], u[:49], (0, 1)) is None
+    assert BodyFrame.detect(x, xp, u, (0, 1)) == system.body_frame
+
+
 def test_the_fit_takes_the_frame_the_data_show_by_default():
     system = KinematicBicycle()
     x, xp, u = system.offline_data(200, torch.Generator().manual_seed(0))

@@ -83,7 +83,8 @@ class BodyFrame:
         without it): a yaw-invariant robot whose other states are body-frame quantities. Both predictions are
         the mean of the :data:`NEIGHBOURS` nearest transitions (inputs scaled to unit spread; at most
         ``max_points`` transitions, evenly spaced). The best candidate wins; a wrong one would cost tightness,
-        never soundness (the frame's bound holds for any heading dim).
+        never soundness (the frame's bound holds for any heading dim). Fewer than :data:`MIN_TRANSITIONS`
+        transitions say nothing: ``None``.
 
         Examples:
             >>> bicycle = KinematicBicycle()
@@ -91,7 +92,7 @@ class BodyFrame:
             BodyFrame(position=(0, 1), heading=2)
         """
         fixed = sorted(int(d) for d in translation_invariant_dims)
-        if len(fixed) < 2:
+        if len(fixed) < 2 or x_minus.shape[0] < MIN_TRANSITIONS:
             return None
         rows = torch.linspace(0, x_minus.shape[0] - 1, min(max_points, x_minus.shape[0])).long()
         x, u, step = x_minus[rows], u_minus[rows], (x_plus - x_minus)[rows]
@@ -233,6 +234,10 @@ on the example robots with a heading: their other states are speeds in the body 
 
 NEIGHBOURS = 5
 """Nearest transitions averaged by :meth:`BodyFrame.detect`'s predictions."""
+
+MIN_TRANSITIONS = 50
+"""The fewest transitions :meth:`BodyFrame.detect` reads a frame from (it is reliable from 200 on the example
+robots; ``tests/reach/test_body_frame.py``)."""
 
 
 def _neighbour_error(inputs: Tensor, targets: Tensor) -> Tensor:
