@@ -452,7 +452,7 @@ class PlanChecker:
         n_tail = self.horizon - plan.shape[-2]
         if n_tail < 0:
             raise ValueError(f"the plan has {plan.shape[-2]} steps, more than the horizon T={self.horizon}")
-        x0 = x0.to(plan.dtype)  # the start is the point x0, handed over unchecked (the decision checked it and the plan)
+        x0 = x0.to(plan.dtype)  # the start is the point x0, handed on unchecked (the decision checked it and the plan)
         if self.failsafe.policy is None:
             actions = torch.cat((plan, self.hold(plan).expand(plan.shape[0], n_tail, -1)), dim=1)
             if tangents is not None:  # the constant brake's actions do not move
