@@ -137,3 +137,19 @@ def test_hinge_selection_past_the_noise_variance_fits_the_quadrotors_bend(monkey
     monkeypatch.setattr(cells, "bend_error", lambda low, high, features: low.new_zeros(low.shape[0]))
     _, claimed, inside = sampled("quadrotor_nav", {}, 500, horizon, 400, seed=2)
     assert not inside.all(), "the sampling should catch the bend the early stop leaves"
+
+
+HEADING_CASES = {"diffdrive_nav": ("diffdrive_nav", {}),
+                 "diffdrive_nav:wheeled": ("diffdrive_nav", {"robot": "wheeled"}),
+                 **{name: (name, {}) for name in ("quadrotor_nav", "hexarotor_wind", "point_boxes", "point_circle")}}
+
+
+@pytest.mark.parametrize("name, options", HEADING_CASES.values(), ids=HEADING_CASES.keys())
+def test_the_fit_finds_the_heading_each_task_declares(name, options):
+    """``BodyFrame.detect`` (what ``fit`` uses by default) on 500 random steps of each task: the body frame its
+    ``SafetyInfo.heading_dims`` declare, or none where it declares none."""
+    info = envs.safety_info(name)
+    data = collect_offline_data(envs.make(name, empty=True, seed=1, **options), 500)
+    found = BodyFrame.detect(data["x_minus"].double(), data["x_plus"].double(), data["u_minus"].double(),
+                             info.position_dims)
+    assert found == (BodyFrame(info.position_dims, info.heading_dims) if info.heading_dims else None)
