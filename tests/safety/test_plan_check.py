@@ -52,6 +52,18 @@ def test_local_model_verdict_matches_its_explicit_sets(local_reach, system, poli
     assert evaluation.safe.any() and hit.any()
 
 
+@pytest.mark.parametrize("bad", ["x0", "plan"])
+def test_a_local_models_checker_rejects_a_non_finite_start_or_plan_by_name(local_reach, system, bad):
+    """The layer sanitises its inputs before a check; a direct call gets a clear error, not sets of NaN."""
+    checker = make_checker(local_reach, system)
+    inputs = {"x0": torch.zeros(2, 4, dtype=torch.float64), "plan": torch.zeros(2, N_PLAN, 2, dtype=torch.float64)}
+    inputs[bad][1, 0] = float("nan")
+    c, g, mask, _ = box([0.25, -1.0], [0.6, 1.0])
+    with pytest.raises(ValueError, match=f"`{bad}` contains NaN"):
+        checker.evaluate(inputs["x0"], inputs["plan"], obstacles_of(c.expand(2, 1, 2), g.expand(2, 1, 2, 2),
+                                                                    mask.expand(2, 1)))
+
+
 def make_checker(reach, system, policy=True, **kwargs):
     horizon = N_PLAN + N_BRK
     radius = reach.error_generators_sequence(horizon)[-1, 2:].abs().sum(-1)

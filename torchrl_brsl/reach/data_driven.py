@@ -426,8 +426,9 @@ class DataDrivenReach(nn.Module):
                       tangents: tuple[Tensor, Tensor] | None = None, brake: tuple | None = None,
                       finish: tuple | None = None) -> tuple:
         """:meth:`reach_covered` of a local model from ``Z(center [..., n], generators [..., n, p])`` (``None``: the
-        point ``center``), its arguments unchecked: the control loop's path, whose states and plans the safety
-        decision has checked already (a ``Zonotope`` and its value checks cost a tenth of a compiled check)."""
+        point ``center``), its arguments unchecked: the safety layer's path, whose checker checks its own start and
+        plan (:meth:`~torchrl_brsl.safety.PlanChecker.rollout_sets`; a ``Zonotope`` of the start and the checks
+        of :meth:`reach_covered` cost a tenth of a compiled check)."""
         dtype = self.state_matrix.dtype
         actions, center = actions.to(dtype), center.to(dtype)
         generators = center.new_zeros(*center.shape, 0) if generators is None else generators.to(dtype)

@@ -16,7 +16,7 @@ from torchrl_brsl.collision.closed_form import CLOSED_FORM_DIMS, rows_at
 from torchrl_brsl.reach import DataDrivenReach
 from torchrl_brsl.safety.failsafe import Failsafe
 from torchrl_brsl.sets import Obstacles, Zonotope, reduce_girard
-from torchrl_brsl.sets._checks import skip_value_checks
+from torchrl_brsl.sets._checks import check_tensor, skip_value_checks
 from torchrl_brsl.sets.reduction import girard_columns
 
 
@@ -452,7 +452,8 @@ class PlanChecker:
         n_tail = self.horizon - plan.shape[-2]
         if n_tail < 0:
             raise ValueError(f"the plan has {plan.shape[-2]} steps, more than the horizon T={self.horizon}")
-        x0 = x0.to(plan.dtype)  # the start is the point x0, handed on unchecked (the decision checked it and the plan)
+        # the start is the point x0 (no Zonotope: its construction cost a tenth of a compiled check)
+        x0, plan = check_tensor("x0", x0, min_ndim=1).to(plan.dtype), check_tensor("plan", plan, min_ndim=2)
         if self.failsafe.policy is None:
             actions = torch.cat((plan, self.hold(plan).expand(plan.shape[0], n_tail, -1)), dim=1)
             if tangents is not None:  # the constant brake's actions do not move
