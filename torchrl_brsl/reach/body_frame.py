@@ -82,9 +82,10 @@ class BodyFrame:
         the other state dims' steps do not need the heading (at most :data:`HEADING_FREE_RATIO` times worse
         without it): a yaw-invariant robot whose other states are body-frame quantities. Both predictions are
         the mean of the :data:`NEIGHBOURS` nearest transitions (inputs scaled to unit spread; at most
-        ``max_points`` transitions, evenly spaced). The best candidate wins; a wrong one would cost tightness,
-        never soundness (the frame's bound holds for any heading dim). Fewer than :data:`MIN_TRANSITIONS`
-        transitions say nothing: ``None``.
+        ``max_points`` transitions, evenly spaced). The best candidate wins. Both tests matter for soundness, not
+        only tightness: the body-frame model leaves the heading out of every output's inputs, and an output that
+        depends on it would then depend on an input the data-driven bound does not see (as a hidden state does).
+        Fewer than :data:`MIN_TRANSITIONS` transitions say nothing: ``None``.
 
         Examples:
             >>> bicycle = KinematicBicycle()
