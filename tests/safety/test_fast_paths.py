@@ -10,7 +10,8 @@ from torch._dynamo.utils import counters
 from torchrl_brsl.collision import ZonotopeCollisionChecker
 from torchrl_brsl.reach import DataDrivenReach, DoubleIntegrator, KinematicBicycle
 from torchrl_brsl.safety import FacetQPAdjuster, Failsafe, GradientAdjuster, PlanChecker, SafetyDecision, plan_check
-from torchrl_brsl.safety.adjust import _centre_jacobian, _closed_form_gradient, _leaf_check, _project_polytope
+from torchrl_brsl.safety.adjust import (_centre_jacobian, _closed_form_gradient, _leaf_check, _project_polytope,
+                                        _project_small)
 from torchrl_brsl.sets import Zonotope
 
 from safety_support import assert_closed_form_matches_autograd, obstacles_of
@@ -163,15 +164,37 @@ def test_projection_reaches_the_exact_quadratic_program():
         b = torch.rand(1, rows, generator=g, dtype=D)
         target = torch.randn(1, n, generator=g, dtype=D) * 3
         z = _project_polytope(A, b, target, 3000)
-        # least-distance programming via NNLS (Lawson and Hanson): the exact solution
-        An, bn, tn = A[0].numpy(), b[0].numpy(), target[0].numpy()
-        E = np.vstack(((-An).T, (An @ tn - bn)[None]))
-        f = np.zeros(n + 1)
-        f[-1] = 1
-        u, _ = nnls(E, f, maxiter=10_000)
-        r = E @ u - f
-        exact = torch.from_numpy(tn - r[:n] / r[n])
-        torch.testing.assert_close(z[0], exact, rtol=0, atol=1e-6)
+        torch.testing.assert_close(z[0], _least_distance(A[0], b[0], target[0]), rtol=0, atol=1e-6)
+
+
+def _least_distance(A: torch.Tensor, b: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """``argmin ||z - target||`` s.t. ``A z <= b`` (one program, ``[C, N]``, ``[C]``, ``[N]``) by least-distance
+    programming via NNLS (Lawson and Hanson): the slow, exact oracle."""
+    An, bn, tn = A.numpy(), b.numpy(), target.numpy()
+    E = np.vstack(((-An).T, (An @ tn - bn)[None]))
+    f = np.zeros(A.shape[1] + 1)
+    f[-1] = 1
+    u, _ = nnls(E, f, maxiter=10_000)
+    r = E @ u - f
+    return torch.from_numpy(tn - r[:-1] / r[-1])
+
+
+@pytest.mark.parametrize("n_vars", [1, 2])
+def test_the_small_projection_is_the_exact_quadratic_program(n_vars):
+    """Random polygons (intervals) around the reference ``z = 0`` with zero rows as padding, a batch of 400: the exact
+    solver against the oracle; the batch holds optima inside, on an edge and (two variables) at a vertex, so a solver
+    missing any kind of candidate fails."""
+    g = torch.Generator().manual_seed(n_vars)
+    A = torch.randn(400, 9, n_vars, generator=g, dtype=D)
+    A[:, -2:] = 0.0  # padding rows
+    b = torch.rand(400, 9, generator=g, dtype=D) * 0.5
+    target = torch.randn(400, n_vars, generator=g, dtype=D) * 2
+    z = _project_small(A, b, target)
+    exact = torch.stack([_least_distance(A[k], b[k], target[k]) for k in range(400)])
+    torch.testing.assert_close(z, exact, rtol=0, atol=1e-9)
+    active = ((A @ z.unsqueeze(-1)).squeeze(-1) - b).abs() < 1e-9
+    kinds = set(active.sum(-1).clamp_max(2).tolist())
+    assert kinds == ({0, 1, 2} if n_vars == 2 else {0, 1}), kinds
 
 
 @pytest.mark.parametrize("adjuster", [FacetQPAdjuster(), GradientAdjuster(max_iterations=20, time_budget=None)])

@@ -213,13 +213,15 @@ class FacetQPAdjuster:
     linear constraints, which the reference satisfies. The adjuster then projects the proposal
     onto them, ``min ||u - u_proposed||^2`` subject to the locked facets, the stop condition
     and the action box, by accelerated projected gradient on the dual (batched, fixed
-    iteration count). The result is pulled back towards the reference until the exact
-    check (:meth:`PlanChecker.evaluate`) accepts it; if even that fails the plan is reported
-    unsafe and the layer keeps its safe plan. Obstacles checked by the LP (polytopes, spaces
-    beyond 3-D) have no facets to lock: there it runs :class:`GradientAdjuster` instead.
+    iteration count), or exactly where the plan has at most :data:`SMALL_PROGRAM` variables
+    (:func:`_project_small`: one action of a 2-D command). The result is pulled back towards
+    the reference until the exact check (:meth:`PlanChecker.evaluate`) accepts it; if even that
+    fails the plan is reported unsafe and the layer keeps its safe plan. Obstacles checked by the
+    LP (polytopes, spaces beyond 3-D) have no facets to lock: there it runs
+    :class:`GradientAdjuster` instead.
 
     Args:
-        iterations: dual gradient iterations.
+        iterations: dual gradient iterations (plans of more than :data:`SMALL_PROGRAM` variables).
         target_margin: the projection aims for ``v* >= 1 + target_margin`` on every locked pair
             (or the reference's own value if smaller).
         backtracking: halvings of the step from the reference towards the projection tried
@@ -228,7 +230,8 @@ class FacetQPAdjuster:
             before the pull-back. A fixed number of dual iterations leaves small violations; where
             the reference already sits on a constraint (hovering at the target margin above a
             floor: no room, ``A z <= 0``), pulling back to remove them scaled the whole step to
-            zero, motion along the floor included, and the robot stood still.
+            zero, motion along the floor included, and the robot stood still. The exact solution
+            needs none.
     """
 
     def __init__(self, iterations: int = 20, target_margin: float = 0.05, backtracking: int = 4, polish: int = 8):
@@ -334,8 +337,10 @@ class FacetQPAdjuster:
         A = torch.cat((rows, box_rows.expand(n_envs, -1, -1)), dim=1)
         b = torch.cat((bounds, (upper - ref_flat).clamp_min(0), (ref_flat - lower).clamp_min(0)), dim=1)
         target = (torch.clamp(plan, low, high) - reference).flatten(1)
-        step = _project_polytope(A, b, target, self.iterations)
-        step = _polish(A, b, step, self.polish)
+        if A.shape[-1] <= SMALL_PROGRAM:  # one action of a 2-D command (the recipes' plans): solved exactly
+            step = _project_small(A, b, target)
+        else:
+            step = _polish(A, b, _project_polytope(A, b, target, self.iterations), self.polish)
         # keep the linearised constraints: scale back towards the reference (beyond rounding: on a row with no
         # room, b = 0, a product 1e-18 off would otherwise scale the step to nothing; the exact check decides)
         excess = (A @ step.unsqueeze(-1)).squeeze(-1)
@@ -550,6 +555,44 @@ def _project_polytope(A: Tensor, b: Tensor, target: Tensor, iterations: int) -> 
         momentum = torch.lerp(new, lam, (1 - t) / t_next)  # new + (t - 1) / t_next (new - lam)
         lam, t = new, t_next
     return target - (At @ lam).squeeze(-1)
+
+
+SMALL_PROGRAM = 2
+"""Plan variables (``P m``) up to which the facet QP's projection is solved exactly (:func:`_project_small`) instead
+of by dual iterations: one action of a 2-D command, the recipes' plans. Timed alone (one env, 16 rows, one thread), 20
+dual iterations took 0.12 ms and the 8 polishing sweeps 0.16 ms, the exact solution 0.13 ms."""
+
+
+def _project_small(A: Tensor, b: Tensor, target: Tensor) -> Tensor:
+    """Exactly ``argmin ||z - target||`` subject to ``A z <= b`` in at most two variables (batched), where ``b >= 0``
+    (``z = 0``, the reference, is feasible): ``A`` ``[B, C, N]``, ``b`` ``[B, C]``, ``target`` ``[B, N]``.
+
+    The optimum lies inside, on an edge or at a vertex of the polygon (an interval for ``N = 1``), so it is the
+    feasible point closest to ``target`` among the target itself, its projections onto each row's boundary and (``N =
+    2``) the boundaries' pairwise intersections; feasible to rounding (``1e-9`` of the row's magnitudes). Zero rows
+    (padding) are never active.
+    """
+    n_rows, n_vars = A.shape[-2:]
+    norms = A.square().sum(-1)  # [B, C]
+    excess = (A @ target.unsqueeze(-1)).squeeze(-1) - b
+    candidates = [target.unsqueeze(1), target.unsqueeze(1) - (excess / norms.clamp_min(1e-300)).unsqueeze(-1) * A]
+    usable = [norms.new_ones(norms.shape[0], 1, dtype=torch.bool), norms > 0]
+    if n_vars == 2 and n_rows > 1:
+        i, j = torch.triu_indices(n_rows, n_rows, 1, device=A.device)
+        (a1, a2), (c1, c2), (b1, b2) = A[:, i].unbind(-1), A[:, j].unbind(-1), (b[:, i], b[:, j])
+        det = a1 * c2 - a2 * c1  # the rows' determinant: parallel boundaries never meet
+        solved = det.abs() > 1e-12 * (norms[:, i] * norms[:, j]).sqrt()
+        det = torch.where(solved, det, 1.0)
+        candidates.append(torch.stack(((b1 * c2 - b2 * a2) / det, (a1 * b2 - c1 * b1) / det), -1))
+        usable.append(solved)
+    points = torch.cat(candidates, 1)  # [B, K, N]
+    slack = (points @ A.transpose(-1, -2)) - b.unsqueeze(1)  # [B, K, C]
+    rounding = 1e-9 * (points.abs() @ A.abs().transpose(-1, -2) + b.abs().unsqueeze(1))
+    feasible = torch.cat(usable, 1) & (slack <= rounding).all(-1)
+    distance = (points - target.unsqueeze(1)).square().sum(-1).masked_fill(~feasible, float("inf"))
+    best = distance.argmin(-1)
+    closest = points.gather(1, best.view(-1, 1, 1).expand(-1, 1, n_vars)).squeeze(1)
+    return torch.where(feasible.any(-1, keepdim=True), closest, torch.zeros_like(closest))
 
 
 def _polish(A: Tensor, b: Tensor, z: Tensor, sweeps: int) -> Tensor:
