@@ -101,21 +101,21 @@ class BodyFrame:
         angles = [(d,) for d in free if float(x[:, d].max() - x[:, d].min()) >= MIN_TURN]
         vectors = [pair for pair in itertools.permutations(free, 2)
                    if float((x[:, list(pair)].square().sum(-1) - 1).abs().max()) <= UNIT_TOLERANCE]
+        world = _neighbour_error(torch.cat((x[:, free], u), -1), step)  # [n]: each step from every input
+        positions = list(itertools.combinations(fixed, 2))
         best, best_share = None, BODY_ERROR_SHARE
         for heading in angles + vectors:
             rest = [d for d in free if d not in heading]
-            with_heading, without = torch.cat((x[:, free], u), -1), torch.cat((x[:, rest], u), -1)
-            if rest and bool((_neighbour_error(without, step[:, rest])
-                              > HEADING_FREE_RATIO * _neighbour_error(with_heading, step[:, rest])).any()):
+            q = cls(positions[0], heading[0] if len(heading) == 1 else heading).heading_vectors(x)
+            bodies = [_solve(q, step[:, list(position)]) for position in positions]
+            errors = _neighbour_error(torch.cat((x[:, rest], u), -1), torch.cat((step[:, rest], *bodies), -1))
+            if bool((errors[:len(rest)] > HEADING_FREE_RATIO * world[rest]).any()):
                 continue
-            frame = cls((fixed[0], fixed[1]), heading[0] if len(heading) == 1 else heading)
-            q = frame.heading_vectors(x)
-            for position in itertools.combinations(fixed, 2):
-                body = _solve(q, step[:, list(position)])
-                share = float(_neighbour_error(without, body).mean()
-                              / _neighbour_error(with_heading, step[:, list(position)]).mean().clamp_min(1e-300))
+            for k, position in enumerate(positions):
+                body = errors[len(rest) + 2 * k:len(rest) + 2 * k + 2]
+                share = float(body.mean() / world[list(position)].mean().clamp_min(1e-300))
                 if share <= best_share:
-                    best, best_share = cls(position, frame.heading), share
+                    best, best_share = cls(position, heading[0] if len(heading) == 1 else heading), share
         return best
 
     @property

@@ -278,8 +278,7 @@ class FacetQPAdjuster:
         n_envs = x0.shape[0]
         reference = reference[:, :plan.shape[1]].to(plan)
         starts, plans = x0.repeat(2, 1), torch.cat((plan, reference))
-        evaluation, gauge, jacobian = _leaf_check(checker, starts, plans,
-                                                  obstacles.repeat(2))
+        evaluation, gauge, jacobian = _leaf_check(checker, starts, plans, obstacles.repeat(2))
         proposal, reference_check = (PlanEvaluation(*(t[part] for t in evaluation))
                                      for part in (slice(n_envs), slice(n_envs, None)))
         return proposal, (jacobian[n_envs:], reference_check, Gauge(*(t[n_envs:] for t in gauge)))
