@@ -95,3 +95,28 @@ def test_small_matmul_compiled_in_a_loop_equals_the_product(transpose_b):
     torch.testing.assert_close(small_matmul(a, holder.operand, transpose_b=transpose_b) * b.sum(), expected)
     compiled = torch.compile(loop, backend="aot_eager", fullgraph=True)(torch.zeros_like(expected))
     torch.testing.assert_close(compiled, expected)
+
+
+def test_plain_layout_gives_one_kind_of_input_to_a_compiled_graph():
+    """A row cut from an expanded tensor and detached keeps stride 0 on its dim of size 1 (``contiguous()`` keeps
+    it, and the graph's guards see it): a second graph without ``plain_layout`` (the teeth), none with it. Inputs
+    already plain are passed through, not copied."""
+    from torch._dynamo.utils import counters
+
+    row = torch.ones(1, 3).expand(4, 3)[1:2].detach()
+    assert row.stride() == (0, 1) and row.contiguous().stride() == (0, 1)
+    plain = _compiling.plain_layout(row)
+    assert plain.stride() == (3, 1) and torch.equal(plain, row)
+    fresh = torch.ones(1, 3)
+    assert _compiling.plain_layout(fresh) is fresh
+    view = torch.ones(2, 3)[:1]
+    assert _compiling.plain_layout(view)._base is None
+
+    def double(x):
+        return x * 2
+
+    for prepare, graphs in ((lambda t: t, 2), (_compiling.plain_layout, 1)):
+        compiled, frames = torch.compile(own_code(double), backend="eager"), counters["frames"]["ok"]
+        compiled(prepare(torch.ones(1, 3)))
+        compiled(prepare(row))
+        assert counters["frames"]["ok"] - frames == graphs

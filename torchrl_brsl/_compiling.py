@@ -55,6 +55,25 @@ def small_matmul(a: Tensor, b: Tensor, transpose_b: bool = False) -> Tensor:
     return a @ (b.mT if transpose_b else b)
 
 
+def plain_layout(tensor: Tensor) -> Tensor:
+    """``tensor`` itself, or a copy, with the strides of a new contiguous tensor and no base: the one kind of input a
+    compiled graph's guards accept without recompiling. A view's guards read its base, and a dim of size 1 may carry
+    any stride, which ``contiguous()`` keeps (0 after ``expand``, also once ``detach()`` has dropped the base).
+
+    Examples:
+        >>> row = torch.ones(1, 2).expand(4, 2)[1:2].detach()
+        >>> row.stride(), plain_layout(row).stride()
+        ((0, 1), (2, 1))
+    """
+    expected, size = [], 1
+    for length in reversed(tensor.shape):
+        expected.append(size)
+        size *= length
+    if tensor._base is None and tensor.stride() == tuple(reversed(expected)):
+        return tensor
+    return tensor.clone(memory_format=torch.contiguous_format)
+
+
 def warn_fallback(what: str, error: Exception, instead: str = "eagerly") -> None:
     """Say why a compiled path failed (the error's last line); its caller runs it ``instead`` from then on.
 

@@ -9,7 +9,8 @@ from torch._dynamo.utils import counters
 
 from torchrl_brsl.collision import ZonotopeCollisionChecker
 from torchrl_brsl.reach import DataDrivenReach, DoubleIntegrator, KinematicBicycle
-from torchrl_brsl.safety import FacetQPAdjuster, Failsafe, GradientAdjuster, PlanChecker, SafetyDecision, plan_check
+from torchrl_brsl.safety import (FacetQPAdjuster, Failsafe, GradientAdjuster, PlanChecker, SafetyDecision, adjust,
+                                 plan_check)
 from torchrl_brsl.safety.adjust import (_centre_jacobian, _closed_form_gradient, _leaf_check, _project_polytope,
                                         _project_small)
 from torchrl_brsl.sets import Zonotope
@@ -195,6 +196,49 @@ def test_the_small_projection_is_the_exact_quadratic_program(n_vars):
     active = ((A @ z.unsqueeze(-1)).squeeze(-1) - b).abs() < 1e-9
     kinds = set(active.sum(-1).clamp_max(2).tolist())
     assert kinds == ({0, 1, 2} if n_vars == 2 else {0, 1}), kinds
+
+
+@pytest.mark.filterwarnings("error::RuntimeWarning")  # no fallback to eager
+@pytest.mark.parametrize("steps", [1, N_PLAN])
+def test_the_compiled_program_is_the_eager_one(monkeypatch, steps):
+    """On a compiled local model the facet QP sets up and solves its program as one compiled graph (exactly for one
+    action, by dual iterations for five), prepared for the obstacles' shapes (``prepare_obstacles``, which the layer
+    calls) and padded to ``LOCKED_ROWS`` rows an env: the eager adjuster's plans to rounding, at one env and at eight.
+    An env that needs more rows is solved eagerly (the teeth: with no row allowed, the compiled program gives up,
+    and the plans stay the same)."""
+    bicycle, eager = bicycle_checker(policy=False)
+    reach = copy.deepcopy(eager.reach).compile_steps(backend="aot_eager")
+    checker = PlanChecker(reach, eager.failsafe, eager.horizon, stop_dims=(3,), stop_slack=0.1,
+                          action_low=bicycle.action_low, action_high=bicycle.action_high)
+    n = 8  # slow, heading along x, full braking as the reference, a box ahead at 0.2-0.6 m: speeding up collides
+    starts = torch.tensor([0.0, 0.0, 0.0, 0.1], dtype=D).expand(n, 4)
+    centers = torch.stack((torch.linspace(0.2, 0.6, n, dtype=D), torch.linspace(-0.2, 0.2, n, dtype=D)), -1)
+    scenes = obstacles_of(centers.unsqueeze(1), torch.tensor([[0.05, 0.0], [0.0, 0.1]], dtype=D).expand(n, 1, 2, 2),
+                          torch.ones(n, 1, dtype=torch.bool))
+    rest = torch.tensor([-1.0, 0.0], dtype=D).expand(n, eager.horizon, 2).clone()
+    proposals = torch.tensor([[[1.0, 0.3]]], dtype=D).expand(n, steps, 2)
+    assert not eager.evaluate(starts, proposals, scenes).safe.any()
+    adjuster = FacetQPAdjuster()
+    checker.prepare_checks(scenes)  # the shapes the layer's env gives
+    frames = counters["frames"]["ok"]
+    adjuster.prepare_obstacles(checker, scenes)
+    assert counters["frames"]["ok"] > frames
+    solved = []
+    real = FacetQPAdjuster._compiled_step
+    monkeypatch.setattr(FacetQPAdjuster, "_compiled_step", lambda *args: solved.append(real(*args)) or solved[-1])
+    for envs, rows in ((slice(2, 3), adjust.LOCKED_ROWS), (slice(None), adjust.LOCKED_ROWS), (slice(None), 0)):
+        monkeypatch.setattr(adjust, "LOCKED_ROWS", rows)
+        x0, plan, reference, obstacles = (value[envs] for value in (starts, proposals, rest, scenes))
+        frames, solved[:] = counters["frames"]["ok"], []
+        got = adjuster(checker, x0, plan, obstacles, reference=reference)
+        want = FacetQPAdjuster()(eager, x0, plan, obstacles, reference=reference)
+        torch.testing.assert_close(got.plan, want.plan, rtol=0, atol=1e-9)
+        assert torch.equal(got.evaluation.safe, want.evaluation.safe)
+        assert (solved[0] is None) == (rows == 0)
+        if rows > 1:
+            assert counters["frames"]["ok"] == frames  # prepared: nothing compiled at a control step
+        moved = ((got.plan != plan) & (got.plan != reference[:, :1])).flatten(1).all(-1)
+        assert moved.any()  # a step between the reference and the proposal was taken
 
 
 @pytest.mark.parametrize("adjuster", [FacetQPAdjuster(), GradientAdjuster(max_iterations=20, time_budget=None)])

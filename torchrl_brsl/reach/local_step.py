@@ -27,7 +27,7 @@ import torch
 from torch import Tensor
 from torch._higher_order_ops.while_loop import while_loop
 
-from torchrl_brsl._compiling import inductor_kwargs, own_code, small_matmul, warn_fallback
+from torchrl_brsl._compiling import inductor_kwargs, own_code, plain_layout, small_matmul, warn_fallback
 from torchrl_brsl.reach.cells import NEAR_LEAVES, leaf_bounds, leaf_distance, leaf_gaps, leaf_layout
 from torchrl_brsl.reach.hinges import product_relaxation, relu_relaxation
 from torchrl_brsl.sets import Zonotope, pad_generators, reduce_girard
@@ -386,8 +386,7 @@ class LocalStep:
             if tensor.ndim != event + 1 or tensor.shape[0] != rows or not tensor.is_contiguous():
                 tensor = tensor.expand(*batch, *tensor.shape[tensor.ndim - event:]).reshape(-1, *tensor.shape[-event:])
                 tensor = tensor.expand(rows, *tensor.shape[1:]).contiguous()
-            if tensor._base is not None:  # the graph guards on a view's base (and a view's strides may differ on dims
-                tensor = tensor.clone(memory_format=torch.contiguous_format)  # of size 1): one kind of input
+            tensor = plain_layout(tensor)  # one kind of input: no view, no odd strides on dims of size 1
             if not single:
                 torch._dynamo.mark_dynamic(tensor, 0)
             return tensor

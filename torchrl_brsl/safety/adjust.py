@@ -7,6 +7,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from torchrl_brsl._compiling import small_matmul
 from torchrl_brsl.safety.plan_check import (FUSE_FROM_STEPS, AffineRollout, Gauge, PlanChecker, PlanEvaluation,
                                              plan_axes)
 from torchrl_brsl.sets import Obstacles
@@ -214,7 +215,8 @@ class FacetQPAdjuster:
     onto them, ``min ||u - u_proposed||^2`` subject to the locked facets, the stop condition
     and the action box, by accelerated projected gradient on the dual (batched, fixed
     iteration count), or exactly where the plan has at most :data:`SMALL_PROGRAM` variables
-    (:func:`_project_small`: one action of a 2-D command). The result is pulled back towards
+    (:func:`_project_small`: one action of a 2-D command); on a compiled local model the program is
+    set up and solved as one compiled graph (:func:`_locked_step`). The result is pulled back towards
     the reference until the exact check (:meth:`PlanChecker.evaluate`) accepts it; if even that
     fails the plan is reported unsafe and the layer keeps its safe plan. Obstacles checked by the
     LP (polytopes, spaces beyond 3-D) have no facets to lock: there it runs
@@ -249,6 +251,26 @@ class FacetQPAdjuster:
         """Compile what this adjuster runs on ``checker`` now, not at its first control step
         (:func:`prepare_linearisation`); :class:`~torchrl_brsl.safety.SafetyDecision` calls it for its checkers."""
         prepare_linearisation(checker)
+
+    def prepare_obstacles(self, checker: PlanChecker, obstacles: Obstacles) -> None:
+        """Compile what depends on the obstacles' shapes ``[B, K, d, ...]`` (their values unused) now: on a compiled
+        local model, the program (:meth:`_compiled_step`) of the plans a layer checks, of one action (an env's action
+        without a plan) and of :attr:`~PlanChecker.plan_steps` actions, for one env and for several; otherwise nothing.
+        :class:`~torchrl_brsl.safety.BRSLSafetyLayer` calls it with its env's obstacle specs, beside
+        :meth:`PlanChecker.prepare_checks`. A plan of another length compiles at its first adjustment."""
+        if not checker.plan_dependent or checker.reach.compile_options is None:
+            return
+        m, d = checker.action_low.shape[-1], len(checker.position_dims)
+        like, s, k = checker.action_low, len(checker.stop_dims), obstacles.center.shape[-2]
+        for steps in sorted({1, max(checker.plan_steps, 1)}):
+            box = (*self._box(checker, steps, like), checker.action_low, checker.action_high)
+            for envs in (1, 2):
+                zeros = [like.new_zeros(envs, *shape) for shape in (
+                    (checker.horizon, k), (checker.horizon, k, d), (checker.horizon, d, steps * m))]
+                locked = (*zeros, torch.ones(envs, k, dtype=torch.bool, device=like.device),
+                          like.new_zeros(envs, s, steps * m), like.new_zeros(envs, s), like.new_zeros(envs, s),
+                          like.new_zeros(envs, steps, m), like.new_zeros(envs, steps, m))
+                self._compiled_step(checker, locked, box)
 
     def __call__(self, checker: PlanChecker, x0: Tensor, plan: Tensor, obstacles: Obstacles,
                  start: float | None = None, reference: Tensor | None = None,
@@ -289,7 +311,6 @@ class FacetQPAdjuster:
         reference = reference[:, :horizon]
         if reference.dtype != plan.dtype or reference.device != plan.device:
             reference = reference.to(plan)
-        low, high = checker.action_low, checker.action_high
         if reference_rollout is not None:  # from :meth:`evaluate_paired`: the reference's Jacobian and check
             jacobian, ref_eval, gauge = reference_rollout
         else:
@@ -308,44 +329,19 @@ class FacetQPAdjuster:
             stop_jac = jacobian[:, -1, checker.stop_dims].flatten(-2)  # [B, s, N]
         else:  # exact and shared by all envs
             pos_jac, stop_jac = affine.position_jacobian, affine.stop_jacobian  # [T, d, N], [s, N]
-        # lock each (step, obstacle) pair to the facet attaining its value under the reference:
-        # s w . (c_o - p_ref - J dz) >= level   <=>   (s w J) dz <= s w . Δ_ref - level
-        picked = gauge.picked  # [B, T, K]
-        weights = gauge.weights * picked.sign().unsqueeze(-1)  # [B, T, K, d]
-        rows = (weights @ pos_jac).flatten(1, 2)  # [B, T K, N]
-        value_ref = picked.abs()
-        bounds = torch.where(obstacles.mask.unsqueeze(-2), (value_ref - (1 + self.target_margin)).clamp_min(0),
-                             float("inf")).flatten(1)  # masked pairs: never a constraint
         if checker.stop_dims:
             stop_ref = _stop_centres(checker, ref_eval.centers)
             room = ref_eval.stop_room * (1 - 1e-9)  # not exactly on the boundary, where rounding decides
             stop_jac = stop_jac.expand(n_envs, *stop_jac.shape[-2:])
-            rows = torch.cat((rows, stop_jac, -stop_jac), dim=1)
-            bounds = torch.cat((bounds, room - stop_ref, room + stop_ref), dim=1)
-        bounds = bounds.clamp_min(0)
-        # rows that no step inside the action box can make active are dropped: each env's own rows
-        # first, the batch padded to the most any env keeps with zero rows (never active), so that an
-        # env's result does not depend on the batch and the dual's size on the union of their rows
-        span, box_rows, upper, lower = self._box(checker, horizon, plan)
-        needed = rows.abs() @ span > bounds
-        order = torch.argsort((~needed).to(torch.uint8), dim=-1, stable=True)[:, :int(needed.sum(-1).max())]
-        keep = needed.gather(1, order)
-        rows = rows.gather(1, order.unsqueeze(-1).expand(-1, -1, rows.shape[-1])) * keep.unsqueeze(-1)
-        bounds = torch.where(keep, bounds.gather(1, order), 0.0)
-        ref_flat = reference.flatten(1)
-        A = torch.cat((rows, box_rows.expand(n_envs, -1, -1)), dim=1)
-        b = torch.cat((bounds, (upper - ref_flat).clamp_min(0), (ref_flat - lower).clamp_min(0)), dim=1)
-        target = (torch.clamp(plan, low, high) - reference).flatten(1)
-        if A.shape[-1] <= SMALL_PROGRAM:  # one action of a 2-D command (the recipes' plans): solved exactly
-            step = _project_small(A, b, target)
         else:
-            step = _polish(A, b, _project_polytope(A, b, target, self.iterations), self.polish)
-        # keep the linearised constraints: scale back towards the reference (beyond rounding: on a row with no
-        # room, b = 0, a product 1e-18 off would otherwise scale the step to nothing; the exact check decides)
-        excess = (A @ step.unsqueeze(-1)).squeeze(-1)
-        rounding = 1e-9 * (A.abs() @ step.abs().unsqueeze(-1)).squeeze(-1)
-        scale = torch.where(excess > b + rounding, b / excess.clamp_min(1e-12), 1.0).amin(-1).clamp(0, 1)
-        step = (step * scale.unsqueeze(-1)).view_as(reference)
+            stop_ref = room = plan.new_zeros(n_envs, 0)
+            stop_jac = plan.new_zeros(n_envs, 0, horizon * plan.shape[-1])
+        locked = (gauge.picked, gauge.weights, pos_jac, obstacles.mask, stop_jac, stop_ref, room, reference, plan)
+        box = (*self._box(checker, horizon, plan), checker.action_low, checker.action_high)
+        step = self._compiled_step(checker, locked, box)
+        if step is None:
+            step = _locked_step(*locked, *box, self.target_margin, None, self.iterations, self.polish)[0]
+        step = step.view_as(reference)
         if checker.plan_dependent:  # a check costs a rollout of sets: the halvings in one or two batches
             first = FIRST_HALVINGS if self._early >= EARLY_SHARE else self.backtracking + 1
             adjustment = _first_safe(checker, x0, reference, step, obstacles, ref_eval, self.backtracking,
@@ -370,6 +366,17 @@ class FacetQPAdjuster:
             if bool(accepted.all()):
                 break
         return Adjustment(best_plan, best_eval, tries)
+
+    def _compiled_step(self, checker: PlanChecker, locked: tuple[Tensor, ...], box: tuple[Tensor, ...]
+                       ) -> Tensor | None:
+        """:func:`_locked_step` on a compiled local model as one compiled graph (one per plan length) with
+        :data:`LOCKED_ROWS` rows an env; ``None`` where it does not apply, where an env needs more rows, or where
+        compiling failed (the caller solves it eagerly)."""
+        if not checker.plan_dependent or checker.reach.compile_options is None or locked[-2].requires_grad:
+            return None
+        result = checker._compiled(_locked_step, locked, *box, self.target_margin, LOCKED_ROWS, self.iterations,
+                                   self.polish, cpp_wrapper=True, single=True)
+        return None if result is None or bool(result[1].any()) else result[0]
 
     @staticmethod
     def _box(checker: PlanChecker, horizon: int, like: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -531,6 +538,58 @@ def _centre_jacobian(checker: PlanChecker, x0: Tensor, plan: Tensor, eps: float 
     centres = centres.view(n_envs, n_vars + 1, *centres.shape[1:])
     jacobian = (centres[:, 1:] - centres[:, :1]) / eps  # [B, N, T, n]
     return jacobian.permute(0, 2, 3, 1).reshape(n_envs, *centres.shape[2:], horizon, m)
+
+
+LOCKED_ROWS = 16
+"""Constraint rows of the facet QP (facets and stop rows that a step inside the action box can make active) that its
+compiled program (:meth:`FacetQPAdjuster._compiled_step`) holds per env, padded with zero rows: a fixed shape, where
+the eager program keeps as many as the batch's largest count. An env with more is solved eagerly. On
+``bench_layer.py``'s wall scene no adjustment needed more, with one action or ten."""
+
+
+def _locked_step(picked: Tensor, weights: Tensor, pos_jac: Tensor, mask: Tensor, stop_jac: Tensor, stop_ref: Tensor,
+                 room: Tensor, reference: Tensor, plan: Tensor, span: Tensor, box_rows: Tensor, upper: Tensor,
+                 lower: Tensor, low: Tensor, high: Tensor, margin: float, rows_kept: int | None, iterations: int,
+                 polish: int) -> tuple[Tensor, Tensor]:
+    """The facet QP's step from ``reference`` ``[B, P, m]`` towards ``plan``: ``([B, N], too_many [B])``, ``N = P m``.
+
+    Each (step, obstacle) pair is locked to the facet attaining its value under the reference (``picked`` ``[B, T,
+    K]``, signed, and the facets' ``weights`` ``[B, T, K, d]``), the centres linearised in the plan (``pos_jac`` ``[B,
+    T, d, N]`` or shared ``[T, d, N]``): ``s w . (c_o - p_ref - J dz) >= level <=> (s w J) dz <= s w . Δ_ref -
+    level``; masked pairs (``mask`` ``[B, K]``) are never constraints. The final centre's stop dims stay within their
+    ``room`` ``[B, s]`` of zero (``stop_jac`` ``[B, s, N]``, ``stop_ref`` ``[B, s]``), and the plan within the action
+    box (``span`` ``[N]``, ``box_rows`` ``[2N, N]``, ``upper``, ``lower`` ``[N]``; the target clamped to ``low``,
+    ``high`` ``[m]``). Rows that no step inside the box can make active are dropped: each env's own rows first,
+    padded with zero rows (never active) to ``rows_kept`` (``too_many`` where an env has more) or, with ``None``, to
+    the most any env keeps, so that an env's result does not depend on the batch. The projection is exact up to
+    :data:`SMALL_PROGRAM` variables (:func:`_project_small`), else ``iterations`` dual steps and ``polish`` sweeps;
+    the result is scaled back towards the reference until it keeps the linearised constraints.
+    """
+    rows = small_matmul(weights * picked.sign().unsqueeze(-1), pos_jac).flatten(1, 2)  # [B, T K, N]
+    bounds = torch.where(mask.unsqueeze(-2), (picked.abs() - (1 + margin)).clamp_min(0), float("inf")).flatten(1)
+    rows = torch.cat((rows, stop_jac, -stop_jac), dim=1)
+    bounds = torch.cat((bounds, room - stop_ref, room + stop_ref), dim=1).clamp_min(0)
+    needed = small_matmul(rows.abs(), span.unsqueeze(-1)).squeeze(-1) > bounds
+    count = needed.sum(-1)
+    size = int(count.max()) if rows_kept is None else min(rows_kept, rows.shape[1])
+    order = torch.argsort((~needed).to(torch.uint8), dim=-1, stable=True)[:, :size]
+    keep = needed.gather(1, order)
+    rows = rows.gather(1, order.unsqueeze(-1).expand(-1, -1, rows.shape[-1])) * keep.unsqueeze(-1)
+    bounds = torch.where(keep, bounds.gather(1, order), 0.0)
+    ref_flat = reference.flatten(1)
+    A = torch.cat((rows, box_rows.expand(rows.shape[0], -1, -1)), dim=1)
+    b = torch.cat((bounds, (upper - ref_flat).clamp_min(0), (ref_flat - lower).clamp_min(0)), dim=1)
+    target = (torch.clamp(plan, low, high) - reference).flatten(1)
+    if A.shape[-1] <= SMALL_PROGRAM:  # one action of a 2-D command (the recipes' plans): solved exactly
+        step = _project_small(A, b, target)
+    else:
+        step = _polish(A, b, _project_polytope(A, b, target, iterations), polish)
+    # keep the linearised constraints: scale back towards the reference (beyond rounding: on a row with no
+    # room, b = 0, a product 1e-18 off would otherwise scale the step to nothing; the exact check decides)
+    excess = small_matmul(A, step.unsqueeze(-1)).squeeze(-1)
+    rounding = 1e-9 * small_matmul(A.abs(), step.abs().unsqueeze(-1)).squeeze(-1)
+    scale = torch.where(excess > b + rounding, b / excess.clamp_min(1e-12), 1.0).amin(-1).clamp(0, 1)
+    return step * scale.unsqueeze(-1), count > size
 
 
 def _project_polytope(A: Tensor, b: Tensor, target: Tensor, iterations: int) -> Tensor:

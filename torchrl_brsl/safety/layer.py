@@ -338,13 +338,16 @@ class BRSLSafetyLayer(Transform):
                 self._prepare_checks(Obstacles(center[first][None], generators[first][None], mask[first][None].bool()))
 
     def _prepare_checks(self, obstacles: Obstacles) -> None:
-        """Compile a compiled local model's checks for the env's obstacle shapes now
-        (:meth:`PlanChecker.prepare_checks`), not at the first step."""
+        """Compile a compiled local model's checks and its adjuster's programs for the env's obstacle shapes now
+        (:meth:`PlanChecker.prepare_checks`, the adjuster's ``prepare_obstacles`` if it has one), not at the first
+        step."""
         if not any(reach is not None and reach.plan_dependent and reach.compile_options is not None
                    for reach in (self.reach, self.local_reach)):
             return
         for checker in filter(None, (self.checker, self.local_checker)):
             checker.prepare_checks(obstacles)
+            if hasattr(self.adjuster, "prepare_obstacles"):
+                self.adjuster.prepare_obstacles(checker, obstacles)
 
     # ----------------------------------------------------------------- specs
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:

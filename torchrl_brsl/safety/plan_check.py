@@ -9,7 +9,7 @@ from typing import Any, Callable, NamedTuple, Sequence
 import torch
 from torch import Tensor
 
-from torchrl_brsl._compiling import inductor_kwargs, own_code, warn_fallback
+from torchrl_brsl._compiling import inductor_kwargs, own_code, plain_layout, warn_fallback
 from torchrl_brsl.collision import (PairFacets, ZonotopeCollisionChecker, collision_value, pair_facets, pair_gauge,
                                     split_pair_facets)
 from torchrl_brsl.collision.closed_form import CLOSED_FORM_DIMS, rows_at
@@ -419,9 +419,7 @@ class PlanChecker:
                                                        **inductor_kwargs(options, cpp_wrapper=cpp_wrapper)))
             count, padded = batched[0].shape[0], []
             for tensor in batched:
-                tensor = tensor.expand(2, *tensor.shape[1:]) if count < 2 and not single else tensor
-                tensor = tensor.contiguous()
-                tensor = tensor.clone(memory_format=torch.contiguous_format) if tensor._base is not None else tensor
+                tensor = plain_layout(tensor.expand(2, *tensor.shape[1:]) if count < 2 and not single else tensor)
                 if count > 1 or not single:
                     torch._dynamo.mark_dynamic(tensor, 0)
                 padded.append(tensor)
