@@ -419,8 +419,7 @@ class LocalStep:
         z_center = z_raw * self.inv_scale
         z_radius = torch.cat((g_free.abs().sum(-1) * self.inv_scale_free, torch.zeros_like(action)), dim=-1)
         gaps = leaf_gaps(*self.boxes, phi, phi_radius)
-        near = (gaps[0].detach().topk(self.near_leaves, largest=False).indices  # the leaves met most deeply
-                if torch.compiler.is_compiling() else None)
+        near = self._near(gaps[0].detach()) if torch.compiler.is_compiling() else None
         distance = leaf_distance(cells, None, z_center.detach(), z_radius.detach(), layout=self.layout, near=near)
         index, errors, covered = leaf_bounds(cells, z_center, z_radius, phi_radius, feature_low, feature_high, distance,
                                              phi, gaps, self.slopes_by_input)
@@ -450,6 +449,14 @@ class LocalStep:
         if self.max_generators is not None and generators.shape[-1] > self.max_generators:
             generators = girard_columns(generators, self.max_generators)  # finite by construction
         return (new_center, generators, covered) if tangents is None else (new_center, generators, covered, moved)
+
+    def _near(self, gaps: Tensor) -> Tensor:
+        """The leaves whose data a compiled step searches, ``[..., n, K]``, from the set's ``gaps`` to every leaf ``[...,
+        n, M]``: the :data:`~torchrl_brsl.reach.cells.NEAR_LEAVES` it meets most deeply, or every leaf where there are
+        no more (in their own order, without a ``topk``: a call out of the compiled kernels at every step)."""
+        if self.near_leaves == gaps.shape[-1]:
+            return torch.arange(gaps.shape[-1], device=gaps.device).expand(gaps.shape)
+        return gaps.topk(self.near_leaves, largest=False).indices
 
     def _tangents(self, center: Tensor, body_center: Tensor, A: Tensor, B: Tensor, dc: Tensor, du: Tensor) -> Tensor:
         """``d new centre = J_c dc + J_u du`` ``[..., n, k]``: the affine part of the step (``A``, ``B`` with the
