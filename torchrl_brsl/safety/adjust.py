@@ -553,17 +553,39 @@ def _locked_step(picked: Tensor, weights: Tensor, pos_jac: Tensor, mask: Tensor,
                  polish: int) -> tuple[Tensor, Tensor]:
     """The facet QP's step from ``reference`` ``[B, P, m]`` towards ``plan``: ``([B, N], too_many [B])``, ``N = P m``.
 
+    The program of :func:`_locked_program` (its arguments), projected onto exactly up to :data:`SMALL_PROGRAM`
+    variables (:func:`_project_small`), else by ``iterations`` dual steps and ``polish`` sweeps, and the result scaled
+    back towards the reference until it keeps the linearised constraints (beyond rounding: on a row with no room, ``b
+    = 0``, a product 1e-18 off would otherwise scale the step to nothing; the exact check decides).
+    """
+    A, b, target, too_many = _locked_program(picked, weights, pos_jac, mask, stop_jac, stop_ref, room, reference, plan,
+                                             span, box_rows, upper, lower, low, high, margin, rows_kept)
+    if A.shape[-1] <= SMALL_PROGRAM:  # one action of a 2-D command (the recipes' plans): solved exactly
+        step = _project_small(A, b, target)
+    else:
+        step = _polish(A, b, _project_polytope(A, b, target, iterations), polish)
+    excess = small_matmul(A, step.unsqueeze(-1)).squeeze(-1)
+    rounding = 1e-9 * small_matmul(A.abs(), step.abs().unsqueeze(-1)).squeeze(-1)
+    scale = torch.where(excess > b + rounding, b / excess.clamp_min(1e-12), 1.0).amin(-1).clamp(0, 1)
+    return step * scale.unsqueeze(-1), too_many
+
+
+def _locked_program(picked: Tensor, weights: Tensor, pos_jac: Tensor, mask: Tensor, stop_jac: Tensor,
+                    stop_ref: Tensor, room: Tensor, reference: Tensor, plan: Tensor, span: Tensor, box_rows: Tensor,
+                    upper: Tensor, lower: Tensor, low: Tensor, high: Tensor, margin: float, rows_kept: int | None
+                    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The facet QP's program ``min ||z - target||`` s.t. ``A z <= b`` for the step ``z`` ``[B, N]`` from
+    ``reference``: ``(A [B, C, N], b [B, C], target [B, N], too_many [B])``.
+
     Each (step, obstacle) pair is locked to the facet attaining its value under the reference (``picked`` ``[B, T,
     K]``, signed, and the facets' ``weights`` ``[B, T, K, d]``), the centres linearised in the plan (``pos_jac`` ``[B,
     T, d, N]`` or shared ``[T, d, N]``): ``s w . (c_o - p_ref - J dz) >= level <=> (s w J) dz <= s w . Δ_ref -
     level``; masked pairs (``mask`` ``[B, K]``) are never constraints. The final centre's stop dims stay within their
     ``room`` ``[B, s]`` of zero (``stop_jac`` ``[B, s, N]``, ``stop_ref`` ``[B, s]``), and the plan within the action
-    box (``span`` ``[N]``, ``box_rows`` ``[2N, N]``, ``upper``, ``lower`` ``[N]``; the target clamped to ``low``,
-    ``high`` ``[m]``). Rows that no step inside the box can make active are dropped: each env's own rows first,
-    padded with zero rows (never active) to ``rows_kept`` (``too_many`` where an env has more) or, with ``None``, to
-    the most any env keeps, so that an env's result does not depend on the batch. The projection is exact up to
-    :data:`SMALL_PROGRAM` variables (:func:`_project_small`), else ``iterations`` dual steps and ``polish`` sweeps;
-    the result is scaled back towards the reference until it keeps the linearised constraints.
+    box (``span`` ``[N]``, ``box_rows`` ``[2N, N]``, ``upper``, ``lower`` ``[N]``); ``target`` is ``plan`` clamped to
+    ``low``, ``high`` ``[m]``, less the reference. Rows that no step inside the box can make active are dropped: each
+    env's own rows first, padded with zero rows (never active) to ``rows_kept`` (``too_many`` where an env has more)
+    or, with ``None``, to the most any env keeps, so that an env's result does not depend on the batch.
     """
     rows = small_matmul(weights * picked.sign().unsqueeze(-1), pos_jac).flatten(1, 2)  # [B, T K, N]
     bounds = torch.where(mask.unsqueeze(-2), (picked.abs() - (1 + margin)).clamp_min(0), float("inf")).flatten(1)
@@ -579,17 +601,7 @@ def _locked_step(picked: Tensor, weights: Tensor, pos_jac: Tensor, mask: Tensor,
     ref_flat = reference.flatten(1)
     A = torch.cat((rows, box_rows.expand(rows.shape[0], -1, -1)), dim=1)
     b = torch.cat((bounds, (upper - ref_flat).clamp_min(0), (ref_flat - lower).clamp_min(0)), dim=1)
-    target = (torch.clamp(plan, low, high) - reference).flatten(1)
-    if A.shape[-1] <= SMALL_PROGRAM:  # one action of a 2-D command (the recipes' plans): solved exactly
-        step = _project_small(A, b, target)
-    else:
-        step = _polish(A, b, _project_polytope(A, b, target, iterations), polish)
-    # keep the linearised constraints: scale back towards the reference (beyond rounding: on a row with no
-    # room, b = 0, a product 1e-18 off would otherwise scale the step to nothing; the exact check decides)
-    excess = small_matmul(A, step.unsqueeze(-1)).squeeze(-1)
-    rounding = 1e-9 * small_matmul(A.abs(), step.abs().unsqueeze(-1)).squeeze(-1)
-    scale = torch.where(excess > b + rounding, b / excess.clamp_min(1e-12), 1.0).amin(-1).clamp(0, 1)
-    return step * scale.unsqueeze(-1), count > size
+    return A, b, (torch.clamp(plan, low, high) - reference).flatten(1), count > size
 
 
 def _project_polytope(A: Tensor, b: Tensor, target: Tensor, iterations: int) -> Tensor:
