@@ -451,9 +451,9 @@ class LocalStep:
         return (new_center, generators, covered) if tangents is None else (new_center, generators, covered, moved)
 
     def _near(self, gaps: Tensor) -> Tensor:
-        """The leaves whose data a compiled step searches, ``[..., n, K]``, from the set's ``gaps`` to every leaf ``[...,
-        n, M]``: the :data:`~torchrl_brsl.reach.cells.NEAR_LEAVES` it meets most deeply, or every leaf where there are
-        no more (in their own order, without a ``topk``: a call out of the compiled kernels at every step)."""
+        """The leaves whose data a compiled step searches, ``[..., n, K]``, from the set's ``gaps`` to every leaf
+        ``[..., n, M]``: the :data:`~torchrl_brsl.reach.cells.NEAR_LEAVES` it meets most deeply, or every leaf where
+        there are no more (in their own order, without a ``topk``: a call out of the compiled kernels at every step)."""
         if self.near_leaves == gaps.shape[-1]:
             return torch.arange(gaps.shape[-1], device=gaps.device).expand(gaps.shape)
         return gaps.topk(self.near_leaves, largest=False).indices
