@@ -199,8 +199,7 @@ def test_the_small_projection_is_the_exact_quadratic_program(n_vars):
 
 
 @pytest.mark.filterwarnings("error::RuntimeWarning")  # no fallback to eager
-@pytest.mark.parametrize("steps", [1, N_PLAN])
-def test_the_compiled_program_is_the_eager_one(monkeypatch, steps):
+def test_the_compiled_program_is_the_eager_one(monkeypatch):
     """On a compiled local model the facet QP sets up and solves its program as one compiled graph (exactly for one
     action, by dual iterations for five), prepared for the obstacles' shapes (``prepare_obstacles``, which the layer
     calls) and padded to ``LOCKED_ROWS`` rows an env: the eager adjuster's plans to rounding, at one env and at eight.
@@ -216,29 +215,30 @@ def test_the_compiled_program_is_the_eager_one(monkeypatch, steps):
     scenes = obstacles_of(centers.unsqueeze(1), torch.tensor([[0.05, 0.0], [0.0, 0.1]], dtype=D).expand(n, 1, 2, 2),
                           torch.ones(n, 1, dtype=torch.bool))
     rest = torch.tensor([-1.0, 0.0], dtype=D).expand(n, eager.horizon, 2).clone()
-    proposals = torch.tensor([[[1.0, 0.3]]], dtype=D).expand(n, steps, 2)
-    assert not eager.evaluate(starts, proposals, scenes).safe.any()
     adjuster = FacetQPAdjuster()
     checker.prepare_checks(scenes)  # the shapes the layer's env gives
     frames = counters["frames"]["ok"]
-    adjuster.prepare_obstacles(checker, scenes)
+    adjuster.prepare_obstacles(checker, scenes)  # one action and N_PLAN (the checker's plan steps)
     assert counters["frames"]["ok"] > frames
-    solved = []
+    solved, kept = [], adjust.LOCKED_ROWS
     real = FacetQPAdjuster._compiled_step
     monkeypatch.setattr(FacetQPAdjuster, "_compiled_step", lambda *args: solved.append(real(*args)) or solved[-1])
-    for envs, rows in ((slice(2, 3), adjust.LOCKED_ROWS), (slice(None), adjust.LOCKED_ROWS), (slice(None), 0)):
-        monkeypatch.setattr(adjust, "LOCKED_ROWS", rows)
-        x0, plan, reference, obstacles = (value[envs] for value in (starts, proposals, rest, scenes))
-        frames, solved[:] = counters["frames"]["ok"], []
-        got = adjuster(checker, x0, plan, obstacles, reference=reference)
-        want = FacetQPAdjuster()(eager, x0, plan, obstacles, reference=reference)
-        torch.testing.assert_close(got.plan, want.plan, rtol=0, atol=1e-9)
-        assert torch.equal(got.evaluation.safe, want.evaluation.safe)
-        assert (solved[0] is None) == (rows == 0)
-        if rows > 1:
-            assert counters["frames"]["ok"] == frames  # prepared: nothing compiled at a control step
-        moved = ((got.plan != plan) & (got.plan != reference[:, :1])).flatten(1).all(-1)
-        assert moved.any()  # a step between the reference and the proposal was taken
+    for steps in (1, N_PLAN):
+        proposals = torch.tensor([[[1.0, 0.3]]], dtype=D).expand(n, steps, 2)
+        assert not eager.evaluate(starts, proposals, scenes).safe.any()
+        for envs, rows in ((slice(2, 3), kept), (slice(None), kept), (slice(None), 0)):
+            monkeypatch.setattr(adjust, "LOCKED_ROWS", rows)
+            x0, plan, reference, obstacles = (value[envs] for value in (starts, proposals, rest, scenes))
+            frames, solved[:] = counters["frames"]["ok"], []
+            got = adjuster(checker, x0, plan, obstacles, reference=reference)
+            want = FacetQPAdjuster()(eager, x0, plan, obstacles, reference=reference)
+            torch.testing.assert_close(got.plan, want.plan, rtol=0, atol=1e-9)
+            assert torch.equal(got.evaluation.safe, want.evaluation.safe)
+            assert (solved[0] is None) == (rows == 0)
+            if rows > 1:
+                assert counters["frames"]["ok"] == frames  # prepared: nothing compiled at a control step
+            moved = ((got.plan != plan) & (got.plan != reference[:, :steps])).flatten(1).all(-1)
+            assert moved.any()  # a step between the reference and the proposal was taken
 
 
 @pytest.mark.parametrize("adjuster", [FacetQPAdjuster(), GradientAdjuster(max_iterations=20, time_budget=None)])
