@@ -257,8 +257,9 @@ class FacetQPAdjuster:
         local model, the program (:meth:`_compiled_step`) of the plans a layer checks, of one action (an env's action
         without a plan) and of :attr:`~PlanChecker.plan_steps` actions, for one env and for several; otherwise nothing.
         :class:`~torchrl_brsl.safety.BRSLSafetyLayer` calls it with its env's obstacle specs, beside
-        :meth:`PlanChecker.prepare_checks`. A plan of another length compiles at its first adjustment."""
-        if not checker.plan_dependent or checker.reach.compile_options is None:
+        :meth:`PlanChecker.prepare_checks`. A plan of another length compiles at its first adjustment; obstacles
+        checked by the LP have no facets to lock, and nothing is compiled for them."""
+        if not checker.plan_dependent or checker.reach.compile_options is None or checker.uses_lp(obstacles):
             return
         m, d = checker.action_low.shape[-1], len(checker.position_dims)
         like, s, k = checker.action_low, len(checker.stop_dims), obstacles.center.shape[-2]
