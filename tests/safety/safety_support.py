@@ -1,17 +1,22 @@
-"""Shared pieces of the safety-layer tests: a fitted model per task and the layer built on it."""
+"""Shared pieces of the safety-layer tests: a fitted model per task and the layer built on it, and the fast paths'
+scenes and bicycle checker."""
 import functools
 
 import torch
 
 import envs
-from torchrl_brsl.reach import DataDrivenReach
-from torchrl_brsl.safety import BRSLSafetyLayer, Failsafe, GradientAdjuster
+from torchrl_brsl.reach import DataDrivenReach, KinematicBicycle
+from torchrl_brsl.safety import BRSLSafetyLayer, Failsafe, GradientAdjuster, PlanChecker
 from torchrl_brsl.sets import Obstacles, Zonotope
 
 
 #: task options used for both the offline data and the episodes. ``point_boxes`` without its
 #: acceleration cap has linear dynamics, where the data-driven sets stay tight.
 TASK_OPTIONS = {"point_boxes": {"max_acceleration": None}}
+
+#: the fast-path tests' plans: planned steps, braking steps, dtype
+N_PLAN, N_BRK = 5, 8
+D = torch.float64
 
 
 def make_env(task: str, **kwargs):
@@ -67,3 +72,26 @@ def assert_closed_form_matches_autograd(checker, x0, plan, centers, generators, 
     torch.testing.assert_close(a.plan, b.plan, rtol=0, atol=1e-9)
     for x, y in zip(a.evaluation, b.evaluation):
         torch.testing.assert_close(x, y, rtol=0, atol=1e-9)
+
+
+def scene(n_envs=3, n_obstacles=4, seed=0):
+    """A random batch of double-integrator-sized states, plans and zonotope obstacles (2-D, 3 generators)."""
+    g = torch.Generator().manual_seed(seed)
+    x0 = torch.cat((torch.randn(n_envs, 2, generator=g, dtype=D) * 0.1,
+                    torch.randn(n_envs, 2, generator=g, dtype=D) * 0.3), dim=1)
+    plan = torch.rand(n_envs, N_PLAN, 2, generator=g, dtype=D) * 2 - 1
+    centers = torch.randn(n_envs, n_obstacles, 2, generator=g, dtype=D) * 0.8
+    generators = torch.randn(n_envs, n_obstacles, 2, 3, generator=g, dtype=D) * 0.15
+    mask = torch.rand(n_envs, n_obstacles, generator=g) > 0.25
+    return x0, plan, centers, generators, mask
+
+
+def bicycle_checker(policy):
+    """A local model of the bicycle in its body frame (500 steps) and its checker, braking open loop or by policy."""
+    bicycle = KinematicBicycle()
+    x, xp, u = bicycle.offline_data(500, torch.Generator().manual_seed(0))
+    reach = DataDrivenReach.fit(x, xp, u, bicycle.noise, translation_invariant_dims=(0, 1), max_generators=24,
+                                body_frame=bicycle.body_frame)
+    return bicycle, PlanChecker(reach, Failsafe(torch.zeros(2, dtype=D), N_BRK, bicycle.braking if policy else None),
+                                N_PLAN + N_BRK, stop_dims=(3,), stop_slack=0.1, action_low=bicycle.action_low,
+                                action_high=bicycle.action_high)
