@@ -93,3 +93,47 @@ def test_after_a_step_that_adjusted_every_env_the_references_ride_along_with_the
         torch.testing.assert_close(got, want, rtol=0, atol=1e-9)
     for name, value in unpaired.diagnostics.items():
         torch.testing.assert_close(some.diagnostics[name], value, rtol=0, atol=1e-9)
+
+
+class _Broken:
+    """A custom adjuster that adjusts with the facet QP, then spoils its result as ``spoil`` says."""
+
+    def __init__(self, spoil):
+        self.inner, self.spoil = FacetQPAdjuster(), spoil
+
+    def __call__(self, checker, x0, plan, obstacles, start=None, reference=None):
+        return self.spoil(self.inner(checker, x0, plan, obstacles, start=start, reference=reference))
+
+
+def _nan_first_env(adjusted):
+    """A NaN action in env 0, which stays claimed safe."""
+    actions = adjusted.evaluation.actions.clone()
+    actions[0, 0, 0] = float("nan")
+    return adjusted._replace(evaluation=adjusted.evaluation._replace(actions=actions))
+
+
+def test_an_adjusters_claim_on_a_nan_plan_is_withdrawn_and_the_failsafe_acts(decide):
+    x0, proposal, safe_plan, steps, obstacles = _scene(2)
+    x0[:, 2] = 0.3  # slow enough for an adjusted plan to verify
+    honest = decide(x0, proposal, safe_plan, steps, obstacles)
+    assert not honest.diagnostics["failsafe"].any()  # the facet QP verifies both envs' adjustments
+    spoilt = SafetyDecision(decide.checker, decide.failsafe, _Broken(_nan_first_env))
+    with pytest.warns(RuntimeWarning, match="claimed 1 plan"):
+        step = spoilt(x0, proposal, safe_plan, steps, obstacles)
+    assert torch.isfinite(step.executed).all() and torch.isfinite(step.safe_plan).all()
+    assert step.diagnostics["failsafe"].tolist() == [True, False]
+    torch.testing.assert_close(step.executed[1], honest.executed[1], rtol=0, atol=1e-12)
+    braked = decide.checker.evaluate(x0[:1], decide.checker.brake(x0[:1]).unsqueeze(1), obstacles[:1])
+    assert braked.safe.all() and step.safe_steps[0] > 0  # env 0 brakes, verified, from the measured state
+    torch.testing.assert_close(step.executed[0], braked.actions[0, 0])
+
+
+@pytest.mark.parametrize("spoil, message", [
+    (lambda adjusted: adjusted.plan, "must return an `Adjustment`"),
+    (lambda adjusted: adjusted._replace(evaluation=adjusted.evaluation._replace(
+        actions=adjusted.evaluation.actions[:, :-1])), r"expected \[B=2\] and \[B=2, T=12, m=2\]"),
+])
+def test_an_adjusters_result_of_the_wrong_kind_or_shape_is_a_clear_error(decide, spoil, message):
+    x0, proposal, safe_plan, steps, obstacles = _scene(2)
+    with pytest.raises((TypeError, ValueError), match=message):
+        SafetyDecision(decide.checker, decide.failsafe, _Broken(spoil))(x0, proposal, safe_plan, steps, obstacles)

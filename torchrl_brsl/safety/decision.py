@@ -18,6 +18,7 @@ env keeps its previous safe plan and is flagged ``invalid_input``.
 """
 from __future__ import annotations
 
+import warnings
 from typing import Callable, NamedTuple
 
 import torch
@@ -63,7 +64,9 @@ class SafetyDecision:
         failsafe: the braking manoeuvre.
         adjuster: called as ``adjuster(checker, x0, plan, obstacles, start=, reference=)`` on the
             envs whose proposal fails (see :mod:`~torchrl_brsl.safety.adjust`); ``None``: never adjust.
-            Its ``prepare(checker)``, if it has one, is called here for each checker (e.g. to compile). Its
+            It returns an :class:`~torchrl_brsl.safety.adjust.Adjustment` whose ``evaluation`` is the checker's
+            verdict on its plans (``checker.evaluate``, which raises on a NaN plan: an adjuster checks only finite
+            ones); a claim on non-finite actions is withdrawn (the failsafe acts) with a warning. Its ``prepare(checker)``, if it has one, is called here for each checker (e.g. to compile). Its
             ``evaluate_paired(checker, x0, plan, reference, obstacles)``, if it has one, checks the proposals where
             the last step adjusted every env, and what it returns beside the evaluation reaches the adjuster as
             ``reference_rollout`` (:meth:`~torchrl_brsl.safety.FacetQPAdjuster.evaluate_paired`).
@@ -147,7 +150,7 @@ class SafetyDecision:
         paired = {} if reference_rollout is None else {"reference_rollout": [_take(t, idx) for t in reference_rollout]}
         adjusted = self.adjuster(sub, _take(x0, idx), _take(plan, idx), _take(obstacles, idx), start=start,
                                  reference=_take(safe_plan, idx), **paired)
-        found = adjusted.evaluation
+        found = _vetted(adjusted, sub, int(todo.sum()))
         plans = _Plans(*(_put(old, idx, new) for old, new in zip(plans, (found.safe, found.actions, found.values))))
         return plans, _put(iterations, idx, adjusted.iterations)
 
@@ -164,8 +167,8 @@ class SafetyDecision:
         with torch.no_grad():
             evaluation = sub.evaluate(x0_i, candidate, obstacles_i)
         if self.adjuster is not None and not bool(evaluation.safe.all()):
-            evaluation = self.adjuster(sub, x0_i, candidate, obstacles_i, start=start,
-                                       reference=_take(safe_plan, idx)).evaluation
+            evaluation = _vetted(self.adjuster(sub, x0_i, candidate, obstacles_i, start=start,
+                                               reference=_take(safe_plan, idx)), sub, x0_i.shape[0])
         return _merge_safe(plans, idx, evaluation), _put(local, idx, evaluation.safe)
 
     def _brake(self, plans: _Plans, x0: Tensor, obstacles: Obstacles, valid: Tensor | None,
@@ -248,6 +251,27 @@ def _sanitize(x0: Tensor, plan: Tensor, obstacles: Obstacles, safe_plan: Tensor,
     cleaned = [torch.where(keep.view(*keep.shape, *[1] * (part.ndim - 2)), part, 0.0) for part in parts]
     obstacles = Obstacles(cleaned[0], cleaned[1], obstacles.mask & keep, *cleaned[2:])
     return x0, plan, obstacles, safe_plan, safe_steps, valid, corrupt
+
+
+def _vetted(adjusted, checker: PlanChecker, n_envs: int) -> PlanEvaluation:
+    """An adjuster's verdict on ``n_envs`` plans, its claims withdrawn on plans with non-finite actions or values
+    (never executed: those envs fall back to the failsafe, with a warning); a result of the wrong kind or shape is
+    an error naming what came back."""
+    found = getattr(adjusted, "evaluation", None)
+    if not isinstance(found, PlanEvaluation):
+        raise TypeError("an adjuster must return an `Adjustment` whose `evaluation` is a `PlanEvaluation` "
+                        f"(`PlanChecker.evaluate`'s result), got {type(adjusted).__name__}")
+    m = checker.action_low.shape[-1]
+    if tuple(found.safe.shape) != (n_envs,) or tuple(found.actions.shape) != (n_envs, checker.horizon, m):
+        raise ValueError(f"the adjuster's evaluation has `safe` of shape {tuple(found.safe.shape)} and `actions` of "
+                         f"shape {tuple(found.actions.shape)}; expected [B={n_envs}] and "
+                         f"[B={n_envs}, T={checker.horizon}, m={m}]")
+    finite = torch.isfinite(found.actions).flatten(1).all(-1) & ~torch.isnan(found.values).flatten(1).any(-1)
+    if bool((found.safe & ~finite).any()):
+        warnings.warn(f"the adjuster claimed {int((found.safe & ~finite).sum())} plan(s) "
+                      "with non-finite actions or values safe; they fall back to the failsafe", RuntimeWarning)
+        found = found._replace(safe=found.safe & finite)
+    return found
 
 
 def _for_envs(checker: PlanChecker, selected: Tensor, obstacles: Obstacles) -> tuple[Tensor | None, PlanChecker]:
