@@ -300,7 +300,7 @@ class FacetQPAdjuster:
             return checker.evaluate(x0, plan, obstacles), None
         n_envs = x0.shape[0]
         reference = reference[:, :plan.shape[1]].to(plan)
-        starts, plans = x0.repeat(2, 1), torch.cat((plan, reference))
+        starts, plans = torch.cat((x0, x0)), torch.cat((plan, reference))
         evaluation, gauge, jacobian = _leaf_check(checker, starts, plans, obstacles.repeat(2))
         proposal, reference_check = (PlanEvaluation(*(t[part] for t in evaluation))
                                      for part in (slice(n_envs), slice(n_envs, None)))
@@ -426,7 +426,7 @@ def _first_safe(checker: PlanChecker, x0: Tensor, reference: Tensor, step: Tenso
         starts, refs, steps, batch = ((x0, reference, step, obstacles) if size == n_envs  # every env: no copies
                                       else (x0[todo], reference[todo], step[todo], obstacles[todo]))
         candidates = (refs + halving.view(-1, 1, 1, 1) * steps).flatten(0, 1)  # [A b, P, m]
-        evaluation = checker.evaluate(starts.repeat(count, 1), candidates, batch.repeat(count))
+        evaluation = checker.evaluate(torch.cat((starts,) * count), candidates, batch.repeat(count))
         safe = evaluation.safe.view(count, size)
         found, taken = safe.any(0), safe.to(torch.uint8).argmax(0)  # [b]: the first safe candidate's row
         envs, pick = todo[found], (taken * size + torch.arange(size, device=step.device))[found]
