@@ -105,22 +105,28 @@ class _Broken:
         return self.spoil(self.inner(checker, x0, plan, obstacles, start=start, reference=reference))
 
 
-def _nan_first_env(adjusted):
-    """A NaN action in env 0, which stays claimed safe."""
-    actions = adjusted.evaluation.actions.clone()
-    actions[0, 0, 0] = float("nan")
-    return adjusted._replace(evaluation=adjusted.evaluation._replace(actions=actions))
+def _first_action_of_env_0(value: float):
+    """The spoiler that sets env 0's first action (first entry) to ``value``, leaving the verdict as it was."""
+    def spoil(adjusted):
+        actions = adjusted.evaluation.actions.clone()
+        actions[0, 0, 0] = value
+        return adjusted._replace(evaluation=adjusted.evaluation._replace(actions=actions))
+    return spoil
 
 
-def test_an_adjusters_claim_on_a_nan_plan_is_withdrawn_and_the_failsafe_acts(decide):
+@pytest.mark.parametrize("value", [float("nan"), -3.0], ids=["nan", "beyond the bounds"])
+def test_an_adjusters_claim_on_a_plan_the_robot_would_not_receive_is_withdrawn(decide, value):
+    """A custom adjuster's claim on a NaN action, or on one beyond the action bounds (the robot clips it, so the
+    checked plan is not the one it would run), never reaches the robot: that env brakes, verified."""
     x0, proposal, safe_plan, steps, obstacles = _scene(2)
     x0[:, 2] = 0.3  # slow enough for an adjusted plan to verify
     honest = decide(x0, proposal, safe_plan, steps, obstacles)
     assert not honest.diagnostics["failsafe"].any()  # the facet QP verifies both envs' adjustments
-    spoilt = SafetyDecision(decide.checker, decide.failsafe, _Broken(_nan_first_env))
+    spoilt = SafetyDecision(decide.checker, decide.failsafe, _Broken(_first_action_of_env_0(value)))
     with pytest.warns(RuntimeWarning, match="claimed 1 plan"):
         step = spoilt(x0, proposal, safe_plan, steps, obstacles)
-    assert torch.isfinite(step.executed).all() and torch.isfinite(step.safe_plan).all()
+    low, high = decide.checker.action_low, decide.checker.action_high
+    assert ((step.executed >= low) & (step.executed <= high)).all()
     assert step.diagnostics["failsafe"].tolist() == [True, False]
     torch.testing.assert_close(step.executed[1], honest.executed[1], rtol=0, atol=1e-12)
     braked = decide.checker.evaluate(x0[:1], decide.checker.brake(x0[:1]).unsqueeze(1), obstacles[:1])

@@ -66,7 +66,8 @@ class SafetyDecision:
             envs whose proposal fails (see :mod:`~torchrl_brsl.safety.adjust`); ``None``: never adjust.
             It returns an :class:`~torchrl_brsl.safety.adjust.Adjustment` whose ``evaluation`` is the checker's
             verdict on its plans (``checker.evaluate``, which raises on a NaN plan: an adjuster checks only finite
-            ones); a claim on non-finite actions is withdrawn (the failsafe acts) with a warning. Its ``prepare(checker)``, if it has one, is called here for each checker (e.g. to compile). Its
+            ones); a claim on actions beyond the checker's bounds or not finite is withdrawn (the failsafe acts) with
+            a warning. Its ``prepare(checker)``, if it has one, is called here for each checker (e.g. to compile). Its
             ``evaluate_paired(checker, x0, plan, reference, obstacles)``, if it has one, checks the proposals where
             the last step adjusted every env, and what it returns beside the evaluation reaches the adjuster as
             ``reference_rollout`` (:meth:`~torchrl_brsl.safety.FacetQPAdjuster.evaluate_paired`).
@@ -254,23 +255,26 @@ def _sanitize(x0: Tensor, plan: Tensor, obstacles: Obstacles, safe_plan: Tensor,
 
 
 def _vetted(adjusted, checker: PlanChecker, n_envs: int) -> PlanEvaluation:
-    """An adjuster's verdict on ``n_envs`` plans, its claims withdrawn on plans with non-finite actions or values
-    (never executed: those envs fall back to the failsafe, with a warning); a result of the wrong kind or shape is
-    an error naming what came back."""
+    """An adjuster's verdict on ``n_envs`` plans, its claims withdrawn on plans the robot would not receive as
+    checked (an action beyond the checker's action bounds, which the robot clips, or not finite) or with NaN
+    collision values: those envs fall back to the failsafe, with a warning. A result of the wrong kind or shape
+    is an error naming what came back."""
     found = getattr(adjusted, "evaluation", None)
     if not isinstance(found, PlanEvaluation):
         raise TypeError("an adjuster must return an `Adjustment` whose `evaluation` is a `PlanEvaluation` "
                         f"(`PlanChecker.evaluate`'s result), got {type(adjusted).__name__}")
-    m = checker.action_low.shape[-1]
-    if tuple(found.safe.shape) != (n_envs,) or tuple(found.actions.shape) != (n_envs, checker.horizon, m):
+    low, high = checker.action_low, checker.action_high
+    if tuple(found.safe.shape) != (n_envs,) or tuple(found.actions.shape) != (n_envs, checker.horizon, low.shape[-1]):
         raise ValueError(f"the adjuster's evaluation has `safe` of shape {tuple(found.safe.shape)} and `actions` of "
                          f"shape {tuple(found.actions.shape)}; expected [B={n_envs}] and "
-                         f"[B={n_envs}, T={checker.horizon}, m={m}]")
-    finite = torch.isfinite(found.actions).flatten(1).all(-1) & ~torch.isnan(found.values).flatten(1).any(-1)
-    if bool((found.safe & ~finite).any()):
-        warnings.warn(f"the adjuster claimed {int((found.safe & ~finite).sum())} plan(s) "
-                      "with non-finite actions or values safe; they fall back to the failsafe", RuntimeWarning)
-        found = found._replace(safe=found.safe & finite)
+                         f"[B={n_envs}, T={checker.horizon}, m={low.shape[-1]}]")
+    tolerance = 1e-6 * (high - low).clamp_min(1.0)  # as the decision's own bound check: rounding is no excess
+    inside = ((found.actions >= low - tolerance) & (found.actions <= high + tolerance)).flatten(1).all(-1)
+    withdrawn = found.safe & ~(inside & ~torch.isnan(found.values).flatten(1).any(-1))  # NaN is never inside
+    if bool(withdrawn.any()):
+        warnings.warn(f"the adjuster claimed {int(withdrawn.sum())} plan(s) safe with actions beyond the action bounds "
+                      "or not finite, or NaN collision values; they fall back to the failsafe", RuntimeWarning)
+        found = found._replace(safe=found.safe & ~withdrawn)
     return found
 
 
