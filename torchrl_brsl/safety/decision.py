@@ -89,8 +89,7 @@ class SafetyDecision:
                 adjuster.prepare(each)
         self.horizon = checker.horizon
         self._pair = False  # evaluate the proposals and the adjuster's references in one batch (:meth:`_adjust`)
-        # a proposal counts as out of bounds beyond rounding (the bounds may be float32)
-        self.bound_tolerance = 1e-6 * (checker.action_high - checker.action_low).clamp_min(1.0)
+        self.bound_tolerance = _bound_tolerance(checker)
 
     def __call__(self, x0: Tensor, proposal: Tensor, safe_plan: Tensor, safe_steps: Tensor, obstacles: Obstacles,
                  start: float | None = None) -> StepDecision:
@@ -151,7 +150,7 @@ class SafetyDecision:
         paired = {} if reference_rollout is None else {"reference_rollout": [_take(t, idx) for t in reference_rollout]}
         adjusted = self.adjuster(sub, _take(x0, idx), _take(plan, idx), _take(obstacles, idx), start=start,
                                  reference=_take(safe_plan, idx), **paired)
-        found = _vetted(adjusted, sub, int(todo.sum()))
+        found = _vetted(adjusted, sub, x0.shape[0] if idx is None else idx.shape[0])
         plans = _Plans(*(_put(old, idx, new) for old, new in zip(plans, (found.safe, found.actions, found.values))))
         return plans, _put(iterations, idx, adjusted.iterations)
 
@@ -268,14 +267,20 @@ def _vetted(adjusted, checker: PlanChecker, n_envs: int) -> PlanEvaluation:
         raise ValueError(f"the adjuster's evaluation has `safe` of shape {tuple(found.safe.shape)} and `actions` of "
                          f"shape {tuple(found.actions.shape)}; expected [B={n_envs}] and "
                          f"[B={n_envs}, T={checker.horizon}, m={low.shape[-1]}]")
-    tolerance = 1e-6 * (high - low).clamp_min(1.0)  # as the decision's own bound check: rounding is no excess
-    inside = ((found.actions >= low - tolerance) & (found.actions <= high + tolerance)).flatten(1).all(-1)
-    withdrawn = found.safe & ~(inside & ~torch.isnan(found.values).flatten(1).any(-1))  # NaN is never inside
+    tolerance = _bound_tolerance(checker)
+    inside = ((found.actions >= low - tolerance) & (found.actions <= high + tolerance)).flatten(1).all(-1)  # not NaN
+    withdrawn = found.safe & ~(inside & ~torch.isnan(found.values).flatten(1).any(-1))
     if bool(withdrawn.any()):
         warnings.warn(f"the adjuster claimed {int(withdrawn.sum())} plan(s) safe with actions beyond the action bounds "
                       "or not finite, or NaN collision values; they fall back to the failsafe", RuntimeWarning)
         found = found._replace(safe=found.safe & ~withdrawn)
     return found
+
+
+def _bound_tolerance(checker: PlanChecker) -> Tensor:
+    """``[m]``: how far an action may lie beyond ``checker``'s bounds and count as inside them (rounding: the bounds
+    may be float32)."""
+    return 1e-6 * (checker.action_high - checker.action_low).clamp_min(1.0)
 
 
 def _for_envs(checker: PlanChecker, selected: Tensor, obstacles: Obstacles) -> tuple[Tensor | None, PlanChecker]:
