@@ -134,12 +134,12 @@ def test_an_adjusters_claim_on_a_plan_the_robot_would_not_receive_is_withdrawn(d
     torch.testing.assert_close(step.executed[0], braked.actions[0, 0])
 
 
-@pytest.mark.parametrize("spoil, message", [
-    (lambda adjusted: adjusted.plan, "must return an `Adjustment`"),
+@pytest.mark.parametrize("spoil, error, message", [
+    (lambda adjusted: adjusted.plan, TypeError, "must return an `Adjustment`"),
     (lambda adjusted: adjusted._replace(evaluation=adjusted.evaluation._replace(
-        actions=adjusted.evaluation.actions[:, :-1])), r"expected \[B=2\] and \[B=2, T=12, m=2\]"),
-])
-def test_an_adjusters_result_of_the_wrong_kind_or_shape_is_a_clear_error(decide, spoil, message):
+        actions=adjusted.evaluation.actions[:, :-1])), ValueError, r"expected \[B=2\] and \[B=2, T=12, m=2\]"),
+], ids=["a plan", "a short evaluation"])
+def test_an_adjusters_result_of_the_wrong_kind_or_shape_is_a_clear_error(decide, spoil, error, message):
     x0, proposal, safe_plan, steps, obstacles = _scene(2)
-    with pytest.raises((TypeError, ValueError), match=message):
+    with pytest.raises(error, match=message):
         SafetyDecision(decide.checker, decide.failsafe, _Broken(spoil))(x0, proposal, safe_plan, steps, obstacles)
