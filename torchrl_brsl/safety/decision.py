@@ -66,11 +66,11 @@ class SafetyDecision:
             envs whose proposal fails (see :mod:`~torchrl_brsl.safety.adjust`); ``None``: never adjust.
             It returns an :class:`~torchrl_brsl.safety.adjust.Adjustment` whose ``evaluation`` is the checker's
             verdict on its plans (``checker.evaluate``, which raises on a NaN plan: an adjuster checks only finite
-            ones); a claim on actions beyond the checker's bounds or not finite is withdrawn (the failsafe acts) with
-            a warning. Its ``prepare(checker)``, if it has one, is called here for each checker (e.g. to compile). Its
-            ``evaluate_paired(checker, x0, plan, reference, obstacles)``, if it has one, checks the proposals where
-            the last step adjusted every env, and what it returns beside the evaluation reaches the adjuster as
-            ``reference_rollout`` (:meth:`~torchrl_brsl.safety.FacetQPAdjuster.evaluate_paired`).
+            ones); a claim on actions beyond the robot's bounds (the main checker's) or not finite is withdrawn (the
+            failsafe acts) with a warning. Its ``prepare(checker)``, if it has one, is called here for each checker
+            (e.g. to compile). Its ``evaluate_paired(checker, x0, plan, reference, obstacles)``, if it has one, checks
+            the proposals where the last step adjusted every env, and what it returns beside the evaluation reaches
+            the adjuster as ``reference_rollout`` (:meth:`~torchrl_brsl.safety.FacetQPAdjuster.evaluate_paired`).
         local_checker: verifies plans with a restricted-domain model (its action bounds the
             local domain's), or ``None``.
 
@@ -150,7 +150,7 @@ class SafetyDecision:
         paired = {} if reference_rollout is None else {"reference_rollout": [_take(t, idx) for t in reference_rollout]}
         adjusted = self.adjuster(sub, _take(x0, idx), _take(plan, idx), _take(obstacles, idx), start=start,
                                  reference=_take(safe_plan, idx), **paired)
-        found = _vetted(adjusted, sub, x0.shape[0] if idx is None else idx.shape[0])
+        found = _vetted(adjusted, self.checker, x0.shape[0] if idx is None else idx.shape[0])
         plans = _Plans(*(_put(old, idx, new) for old, new in zip(plans, (found.safe, found.actions, found.values))))
         return plans, _put(iterations, idx, adjusted.iterations)
 
@@ -168,7 +168,7 @@ class SafetyDecision:
             evaluation = sub.evaluate(x0_i, candidate, obstacles_i)
         if self.adjuster is not None and not bool(evaluation.safe.all()):
             evaluation = _vetted(self.adjuster(sub, x0_i, candidate, obstacles_i, start=start,
-                                               reference=_take(safe_plan, idx)), sub, x0_i.shape[0])
+                                               reference=_take(safe_plan, idx)), self.checker, x0_i.shape[0])
         return _merge_safe(plans, idx, evaluation), _put(local, idx, evaluation.safe)
 
     def _brake(self, plans: _Plans, x0: Tensor, obstacles: Obstacles, valid: Tensor | None,
@@ -255,9 +255,10 @@ def _sanitize(x0: Tensor, plan: Tensor, obstacles: Obstacles, safe_plan: Tensor,
 
 def _vetted(adjusted, checker: PlanChecker, n_envs: int) -> PlanEvaluation:
     """An adjuster's verdict on ``n_envs`` plans, its claims withdrawn on plans the robot would not receive as
-    checked (an action beyond the checker's action bounds, which the robot clips, or not finite) or with NaN
-    collision values: those envs fall back to the failsafe, with a warning. A result of the wrong kind or shape
-    is an error naming what came back."""
+    checked (an action beyond the robot's action bounds, those of the main ``checker``, where it clips, or not
+    finite) or with NaN collision values: those envs fall back to the failsafe, with a warning. A result of the
+    wrong kind or shape is an error naming what came back. (A local domain's narrower bounds are its own checker's
+    business: its model's coverage decides there.)"""
     found = getattr(adjusted, "evaluation", None)
     if not isinstance(found, PlanEvaluation):
         raise TypeError("an adjuster must return an `Adjustment` whose `evaluation` is a `PlanEvaluation` "
