@@ -3,7 +3,7 @@ import pytest
 import torch
 
 from torchrl_brsl.reach import DataDrivenReach, DoubleIntegrator
-from torchrl_brsl.safety import FacetQPAdjuster, Failsafe, PlanChecker, SafetyDecision
+from torchrl_brsl.safety import Adjustment, FacetQPAdjuster, Failsafe, PlanChecker, SafetyDecision
 from torchrl_brsl.sets import Zonotope
 
 from safety_support import obstacles_of
@@ -143,3 +143,28 @@ def test_an_adjusters_result_of_the_wrong_kind_or_shape_is_a_clear_error(decide,
     x0, proposal, safe_plan, steps, obstacles = _scene(2)
     with pytest.raises(error, match=message):
         SafetyDecision(decide.checker, decide.failsafe, _Broken(spoil))(x0, proposal, safe_plan, steps, obstacles)
+
+
+class _BrakesHardLocally:
+    """A custom adjuster that gives up under the main checker and, under the local domain's (bounds +-0.5), claims
+    full braking at -0.8: inside the robot's bounds (+-1), beyond the domain's, verified by that checker."""
+
+    def __call__(self, checker, x0, plan, obstacles, start=None, reference=None):
+        if float(checker.action_high.max()) >= 1.0:  # the main checker: the proposal's own verdict
+            return Adjustment(plan, checker.evaluate(x0, plan, obstacles), torch.zeros(len(x0), dtype=torch.long))
+        braking = torch.zeros_like(plan)
+        braking[..., 0] = -0.8
+        return Adjustment(braking, checker.evaluate(x0, braking, obstacles), torch.ones(len(x0), dtype=torch.long))
+
+
+def test_a_local_domains_adjustment_is_held_to_the_robots_bounds_not_the_domains(decide):
+    """The local domain's checker verifies what its model covers; the robot clips at its own bounds. A claim of the
+    local retry beyond the domain's bounds but inside the robot's is executed."""
+    x0, proposal, safe_plan, steps, obstacles = _scene(1)
+    x0[:, 2] = 0.3
+    local = PlanChecker(decide.checker.reach, decide.failsafe, N_PLAN + N_BRK, stop_dims=(2, 3), stop_slack=0.1,
+                        action_low=torch.full((2,), -0.5, dtype=D), action_high=torch.full((2,), 0.5, dtype=D))
+    step = SafetyDecision(decide.checker, decide.failsafe, _BrakesHardLocally(), local_checker=local)(
+        x0, proposal, safe_plan, steps, obstacles)
+    assert step.diagnostics["local"].all() and not step.diagnostics["failsafe"].any()
+    torch.testing.assert_close(step.executed[0], torch.tensor([-0.8, 0.0], dtype=D))
