@@ -46,14 +46,14 @@ def test_the_callers_own_choices_are_kept(isa):
     assert inductor_kwargs({"mode": "max-autotune"}) == {"mode": "max-autotune"}
     assert inductor_kwargs({"options": {"cpp_wrapper": False}}, cpp_wrapper=True) == {"options": {"cpp_wrapper": False}}
     assert inductor_kwargs({"dynamic": True}, cpp_wrapper=True) == {
-        "dynamic": True, "options": {"cpp.simdlen": 256, "cpp_wrapper": True}}
+        "dynamic": True, "options": {"cpp.simdlen": 256, **_compiling.CACHEABLE_LOOPS, "cpp_wrapper": True}}
     isa(256)
-    assert inductor_kwargs({}) == {"options": {}}
+    assert inductor_kwargs({}) == {"options": _compiling.CACHEABLE_LOOPS}
 
 
 def test_the_options_are_inductors():
     """The option names exist in this torch's inductor config (a rename would otherwise fail only at compile)."""
-    with torch._inductor.config.patch({"cpp.simdlen": 256, "cpp_wrapper": True}):
+    with torch._inductor.config.patch({"cpp.simdlen": 256, "cpp_wrapper": True, **_compiling.CACHEABLE_LOOPS}):
         assert torch._inductor.config.cpp.simdlen == 256
     assert _compiling.vector_options() in ({}, {"cpp.simdlen": 256})
 
@@ -120,3 +120,58 @@ def test_plain_layout_gives_one_kind_of_input_to_a_compiled_graph():
         compiled(prepare(torch.ones(1, 3)))
         compiled(prepare(row))
         assert counters["frames"]["ok"] - frames == graphs
+
+
+_CACHED_RUNS = """
+import json, sys
+import torch
+from torch._dynamo.utils import counters
+from torch._higher_order_ops.while_loop import while_loop
+from torchrl_brsl._compiling import own_code
+
+def adding_loop(increment):
+    def loop(x):
+        return while_loop(lambda i, x: i < 3, lambda i, x: (i + 1, x + increment),
+                          (torch.zeros((), dtype=torch.long), x))[1]
+    return own_code(loop)
+
+runs = []
+for options, increment in json.loads(sys.argv[1]):
+    torch._dynamo.reset()  # as in a new process
+    hits = counters["inductor"]["fxgraph_cache_hit"]
+    result = torch.compile(adding_loop(increment), options=options)(torch.zeros(2, dtype=torch.float64))
+    runs.append([result.tolist(), counters["inductor"]["fxgraph_cache_hit"] == hits + 1])
+print(json.dumps(runs))
+"""
+
+
+@pytest.fixture(scope="module")
+def cached_runs(tmp_path_factory) -> dict[str, list[tuple[list[float], bool]]]:
+    """Loops adding a constant three times, compiled in turn in a fresh process with an empty on-disk cache of
+    inductor's, each after the compiler's reset (as in a new process): per series of ``(options, increment)``, their
+    results and whether each graph came from the cache."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    series = {"plain": [({}, 1.0)] * 2, "marked": [(_compiling.CACHEABLE_LOOPS, 1.0)] * 2,
+              "package": [(inductor_kwargs({})["options"], increment) for increment in (0.5, 1.5, 0.5)]}
+    env = {**os.environ, "TORCHINDUCTOR_CACHE_DIR": str(tmp_path_factory.mktemp("inductor"))}
+    done = subprocess.run([sys.executable, "-c", _CACHED_RUNS, json.dumps(sum(series.values(), []))],
+                          capture_output=True, text=True, env=env, check=True)
+    runs = iter(tuple(run) for run in json.loads(done.stdout.strip().splitlines()[-1]))
+    return {name: [next(runs) for _ in steps] for name, steps in series.items()}
+
+
+@pytest.mark.parametrize("series, cached", [("plain", False), ("marked", True)])
+def test_a_loops_graph_is_cached_with_the_option(cached_runs, series, cached):
+    """Compiled again, a graph holding a ``while_loop`` comes from inductor's cache with :data:`CACHEABLE_LOOPS` and
+    is compiled again without it (the option's teeth)."""
+    assert cached_runs[series] == [([3.0, 3.0], False), ([3.0, 3.0], cached)]
+
+
+def test_cached_loops_that_differ_only_in_their_body_keep_their_own_graphs(cached_runs):
+    """The cache's key holds the loop's body: a loop adding 1.5 is not served the graph of one adding 0.5, which the
+    cache holds (it serves that one again), with this package's options."""
+    assert cached_runs["package"] == [([1.5, 1.5], False), ([4.5, 4.5], False), ([1.5, 1.5], True)]

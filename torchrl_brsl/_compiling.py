@@ -92,7 +92,8 @@ def inductor_kwargs(compile_kwargs: dict, **options) -> dict:
     innermost loops, and on an AVX-512 CPU a vector of 16 doubles is mostly masked lanes. Vectors
     of 256 bits (:func:`vector_options`) ran a 6-D model's plan loop 1.3x faster at batch 1 and
     1.9x at batches 16 and 64, with the same sets to rounding (``benchmarks/bench_compiled_step.py
-    --vectors``).
+    --vectors``). Graphs with a ``while_loop`` (a plan's loop) go to inductor's on-disk cache too
+    (:data:`CACHEABLE_LOOPS`).
 
     Examples:
         >>> inductor_kwargs({}, cpp_wrapper=True)["options"]["cpp_wrapper"]
@@ -103,7 +104,22 @@ def inductor_kwargs(compile_kwargs: dict, **options) -> dict:
     if compile_kwargs.get("backend", "inductor") != "inductor" or "options" in compile_kwargs \
             or "mode" in compile_kwargs:
         return dict(compile_kwargs)
-    return {**compile_kwargs, "options": {**vector_options(), **options}}
+    return {**compile_kwargs, "options": {**vector_options(), **CACHEABLE_LOOPS, **options}}
+
+
+CACHEABLE_LOOPS = {"unsafe_marked_cacheable_functions": {"torch.ops.higher_order.while_loop": torch.__version__}}
+"""Inductor's option that lets its caches (compiled graphs, AOT autograd) keep graphs holding a ``while_loop``.
+
+Inductor (torch 2.13) leaves them out by default, so every process traced a plan's loop and generated and compiled its
+C++ code again. With them cached, a fresh process on one CPU core took 19-20 s instead of 25-33 s in
+:meth:`~torchrl_brsl.reach.DataDrivenReach.compile_steps` of the bicycle's local model, and 29 s instead of 48-55 s to
+compile the Turtlebot's body-frame model and append the layer (its checks and the facet QP), the cache warm from an
+earlier process. The cache's key holds the loop's condition and body graphs (a graph module is hashed with its
+submodules' code) and the constants a graph holds, so a cached loop is one traced from the same operations on the same
+shapes and constants (``tests/test_compiling.py`` compiles two loops that differ only in their body's constant). The
+option's name says "unsafe" because torch has not vetted the operator for caching; the key's completeness is what that
+rests on.
+"""
 
 
 @functools.cache

@@ -464,11 +464,10 @@ class DataDrivenReach(nn.Module):
         sound bounds of their inputs). A plan's sets without
         gradients (checking and both adjusters' linearisation, with a braking policy's tail too) run as
         one compiled loop, 7-9x faster than eager at batch 1; single steps (gradients) 2-5x
-        (``benchmarks/bench_compiled_step.py``). The warm-up's five graphs take minutes, in every
-        process: on one CPU core the bicycle's body-frame model took 193 s with an empty on-disk cache
-        and 90 s with a full one. Inductor (torch 2.13) does not cache a graph that holds a
-        ``while_loop``, so each process traces the plan's loops on symbolic batch sizes and generates
-        their code again; only the single steps' two graphs come from the cache. ``warm_up``
+        (``benchmarks/bench_compiled_step.py``). The warm-up's five graphs take minutes with an empty
+        on-disk cache (the bicycle's body-frame model: 193 s on one CPU core) and about 20 s in a later
+        process: every graph, the plans' loops included (:data:`~torchrl_brsl._compiling.CACHEABLE_LOOPS`),
+        then comes from inductor's cache, and each process only traces them again. ``warm_up``
         compiles the steps' and the plans' graphs (with and without tangents) here, on two offline
         states, so that no call of :meth:`reach_covered` stalls on it (the graphs of gradients through
         the steps, which the adjusters take only for obstacles checked by the LP, compile on first

@@ -44,8 +44,8 @@ class LocalStep:
     Args:
         model: a fitted local model.
         compile_kwargs: arguments of :func:`torch.compile` to run the step compiled (``None``: eager).
-            The first calls compile it (the steps: under a minute per graph with an empty cache,
-            seconds with the on-disk cache warm; the plan's loops: tens of seconds in every process);
+            The first calls compile it (under a minute per graph with an empty cache, seconds with
+            inductor's on-disk cache warm, the plan's loops too);
             the batch and the plan's length are symbolic and the generator width fixed at
             ``max_generators``, so every later shape reuses the graph. If compilation fails (e.g.
             no C++ compiler), a warning says why and the step runs eagerly from then on.
