@@ -159,7 +159,7 @@ def cached_runs(tmp_path_factory) -> dict[str, list[tuple[list[float], bool]]]:
               "package": [(inductor_kwargs({})["options"], increment) for increment in (0.5, 1.5, 0.5)]}
     env = {**os.environ, "TORCHINDUCTOR_CACHE_DIR": str(tmp_path_factory.mktemp("inductor"))}
     done = subprocess.run([sys.executable, "-c", _CACHED_RUNS, json.dumps(sum(series.values(), []))],
-                          capture_output=True, text=True, env=env, check=True)
+                          capture_output=True, text=True, env=env, check=True, timeout=600)
     runs = iter(tuple(run) for run in json.loads(done.stdout.strip().splitlines()[-1]))
     return {name: [next(runs) for _ in steps] for name, steps in series.items()}
 
