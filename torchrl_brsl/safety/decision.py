@@ -89,7 +89,8 @@ class SafetyDecision:
                 adjuster.prepare(each)
         self.horizon = checker.horizon
         self._pair = False  # evaluate the proposals and the adjuster's references in one batch (:meth:`_adjust`)
-        self.bound_tolerance = _bound_tolerance(checker)
+        # how far an action may lie beyond the bounds and count as inside them (rounding: the bounds may be float32)
+        self.bound_tolerance = 1e-6 * (checker.action_high - checker.action_low).clamp_min(1.0)  # [m]
 
     def __call__(self, x0: Tensor, proposal: Tensor, safe_plan: Tensor, safe_steps: Tensor, obstacles: Obstacles,
                  start: float | None = None) -> StepDecision:
@@ -150,7 +151,7 @@ class SafetyDecision:
         paired = {} if reference_rollout is None else {"reference_rollout": [_take(t, idx) for t in reference_rollout]}
         adjusted = self.adjuster(sub, _take(x0, idx), _take(plan, idx), _take(obstacles, idx), start=start,
                                  reference=_take(safe_plan, idx), **paired)
-        found = _vetted(adjusted, self.checker, x0.shape[0] if idx is None else idx.shape[0])
+        found = _vetted(adjusted, self.checker, self.bound_tolerance, x0.shape[0] if idx is None else idx.shape[0])
         plans = _Plans(*(_put(old, idx, new) for old, new in zip(plans, (found.safe, found.actions, found.values))))
         return plans, _put(iterations, idx, adjusted.iterations)
 
@@ -168,7 +169,8 @@ class SafetyDecision:
             evaluation = sub.evaluate(x0_i, candidate, obstacles_i)
         if self.adjuster is not None and not bool(evaluation.safe.all()):
             evaluation = _vetted(self.adjuster(sub, x0_i, candidate, obstacles_i, start=start,
-                                               reference=_take(safe_plan, idx)), self.checker, x0_i.shape[0])
+                                               reference=_take(safe_plan, idx)), self.checker, self.bound_tolerance,
+                                 x0_i.shape[0])
         return _merge_safe(plans, idx, evaluation), _put(local, idx, evaluation.safe)
 
     def _brake(self, plans: _Plans, x0: Tensor, obstacles: Obstacles, valid: Tensor | None,
@@ -253,12 +255,12 @@ def _sanitize(x0: Tensor, plan: Tensor, obstacles: Obstacles, safe_plan: Tensor,
     return x0, plan, obstacles, safe_plan, safe_steps, valid, corrupt
 
 
-def _vetted(adjusted, checker: PlanChecker, n_envs: int) -> PlanEvaluation:
+def _vetted(adjusted, checker: PlanChecker, tolerance: Tensor, n_envs: int) -> PlanEvaluation:
     """An adjuster's verdict on ``n_envs`` plans, its claims withdrawn on plans the robot would not receive as
-    checked (an action beyond the robot's action bounds, those of the main ``checker``, where it clips, or not
-    finite) or with NaN collision values: those envs fall back to the failsafe, with a warning. A result of the
-    wrong kind or shape is an error naming what came back. (A local domain's narrower bounds are its own checker's
-    business: its model's coverage decides there.)"""
+    checked (an action beyond the robot's action bounds, those of the main ``checker`` give or take ``tolerance``
+    ``[m]``, where it clips, or not finite) or with NaN collision values: those envs fall back to the failsafe, with
+    a warning. A result of the wrong kind or shape is an error naming what came back. (A local domain's narrower
+    bounds are its own checker's business: its model's coverage decides there.)"""
     found = getattr(adjusted, "evaluation", None)
     if not isinstance(found, PlanEvaluation):
         raise TypeError("an adjuster must return an `Adjustment` whose `evaluation` is a `PlanEvaluation` "
@@ -268,7 +270,6 @@ def _vetted(adjusted, checker: PlanChecker, n_envs: int) -> PlanEvaluation:
         raise ValueError(f"the adjuster's evaluation has `safe` of shape {tuple(found.safe.shape)} and `actions` of "
                          f"shape {tuple(found.actions.shape)}; expected [B={n_envs}] and "
                          f"[B={n_envs}, T={checker.horizon}, m={low.shape[-1]}]")
-    tolerance = _bound_tolerance(checker)
     inside = ((found.actions >= low - tolerance) & (found.actions <= high + tolerance)).flatten(1).all(-1)  # not NaN
     withdrawn = found.safe & ~(inside & ~torch.isnan(found.values).flatten(1).any(-1))
     if bool(withdrawn.any()):
@@ -276,12 +277,6 @@ def _vetted(adjusted, checker: PlanChecker, n_envs: int) -> PlanEvaluation:
                       "or not finite, or NaN collision values; they fall back to the failsafe", RuntimeWarning)
         found = found._replace(safe=found.safe & ~withdrawn)
     return found
-
-
-def _bound_tolerance(checker: PlanChecker) -> Tensor:
-    """``[m]``: how far an action may lie beyond ``checker``'s bounds and count as inside them (rounding: the bounds
-    may be float32)."""
-    return 1e-6 * (checker.action_high - checker.action_low).clamp_min(1.0)
 
 
 def _for_envs(checker: PlanChecker, selected: Tensor, obstacles: Obstacles) -> tuple[Tensor | None, PlanChecker]:
