@@ -13,18 +13,17 @@ from torchrl_brsl.sets import Zonotope
 from safety_support import D, N_PLAN, bicycle_checker, obstacles_of, scene
 
 
-@pytest.mark.filterwarnings("error::RuntimeWarning")  # no fallback to eager
-def test_the_compiled_program_is_the_eager_one(monkeypatch):
-    """On a compiled local model the facet QP sets up and solves its program as one compiled graph (exactly for one
-    action, by dual iterations for five), prepared for the obstacles' shapes (``prepare_obstacles``, which the layer
-    calls) and padded to ``LOCKED_ROWS`` rows an env: the eager adjuster's plans to rounding, at one env and at eight.
-    An env that needs more rows is solved eagerly (the teeth: with no row allowed, the compiled program gives up,
-    and the plans stay the same)."""
+@pytest.fixture(scope="module")
+def program():
+    """``(bicycle, eager, checker, adjuster, starts, scenes, rest)``: the bicycle's local model eagerly and compiled
+    (``aot_eager``), its compiled checks and facet QP prepared for 8 envs' scenes (``prepare_checks`` and
+    ``prepare_obstacles``, which the layer calls), slow, heading along x, a box ahead at 0.2-0.6 m (speeding up
+    collides), and full braking as every env's reference."""
     bicycle, eager = bicycle_checker(policy=False)
     reach = copy.deepcopy(eager.reach).compile_steps(backend="aot_eager")
     checker = PlanChecker(reach, eager.failsafe, eager.horizon, stop_dims=(3,), stop_slack=0.1,
                           action_low=bicycle.action_low, action_high=bicycle.action_high)
-    n = 8  # slow, heading along x, full braking as the reference, a box ahead at 0.2-0.6 m: speeding up collides
+    n = 8
     starts = torch.tensor([0.0, 0.0, 0.0, 0.1], dtype=D).expand(n, 4)
     centers = torch.stack((torch.linspace(0.2, 0.6, n, dtype=D), torch.linspace(-0.2, 0.2, n, dtype=D)), -1)
     scenes = obstacles_of(centers.unsqueeze(1), torch.tensor([[0.05, 0.0], [0.0, 0.1]], dtype=D).expand(n, 1, 2, 2),
@@ -35,7 +34,17 @@ def test_the_compiled_program_is_the_eager_one(monkeypatch):
     frames = counters["frames"]["ok"]
     adjuster.prepare_obstacles(checker, scenes)  # one action and N_PLAN (the checker's plan steps)
     assert counters["frames"]["ok"] > frames
-    solved, kept = [], adjust.LOCKED_ROWS
+    return bicycle, eager, checker, adjuster, starts, scenes, rest
+
+
+@pytest.mark.filterwarnings("error::RuntimeWarning")  # no fallback to eager
+def test_the_compiled_program_is_the_eager_one(program, monkeypatch):
+    """On a compiled local model the facet QP sets up and solves its program as one compiled graph (exactly for one
+    action, by dual iterations for five), prepared for the obstacles' shapes and padded to ``LOCKED_ROWS`` rows an
+    env: the eager adjuster's plans to rounding, at one env and at eight. An env that needs more rows is solved
+    eagerly (the teeth: with no row allowed, the compiled program gives up, and the plans stay the same)."""
+    bicycle, eager, checker, adjuster, starts, scenes, rest = program
+    n, solved, kept = starts.shape[0], [], adjust.LOCKED_ROWS
     real = FacetQPAdjuster._compiled_step
     monkeypatch.setattr(FacetQPAdjuster, "_compiled_step", lambda *args: solved.append(real(*args)) or solved[-1])
     for steps in (1, N_PLAN):
@@ -57,10 +66,51 @@ def test_the_compiled_program_is_the_eager_one(monkeypatch):
 
 
 @pytest.mark.filterwarnings("error::RuntimeWarning")  # no fallback to eager
+def test_a_paired_step_checks_the_programs_first_candidates_in_its_graph(program, monkeypatch):
+    """After a step that adjusted every env, a compiled local model's decision checks the proposals and the
+    references, solves the facet QP from each reference and checks its first halvings in one graph
+    (:meth:`FacetQPAdjuster._ahead`, prepared by ``prepare_obstacles`` for the scenes' 8 envs): each candidate's
+    evaluation is the checker's of the same plan, and the decision is the one made without pairing (its own program
+    and checks), at eight envs and at one (a graph of its own), where the envs' halvings and outcomes differ."""
+    bicycle, eager, checker, adjuster, starts, scenes, rest = program
+    decide, made = SafetyDecision(checker, checker.failsafe, adjuster), []
+    real = FacetQPAdjuster._ahead
+    monkeypatch.setattr(FacetQPAdjuster, "_ahead", lambda *args: made.append(real(*args)) or made[-1])
+    for steps in (1, N_PLAN):
+        proposals = torch.tensor([[[1.0, 0.3]]], dtype=D).repeat(starts.shape[0], steps, 1)
+        proposals[1::2] = torch.tensor([-0.8, -0.3], dtype=D)  # near the reference
+        for envs in (slice(2, 3), slice(None)):
+            x0, plan, safe_plan, obstacles = (value[envs] for value in (starts, proposals, rest, scenes))
+            held = torch.zeros(x0.shape[0], dtype=torch.long)
+            decide._pair, made[:], frames = True, [], counters["frames"]["ok"]
+            together = decide(x0, plan, safe_plan, held, obstacles)
+            assert len(made) == 1 and made[0][3] is not None  # the program's step and candidates came ahead
+            if x0.shape[0] > 1:
+                assert counters["frames"]["ok"] == frames  # prepared: nothing compiled at a control step
+            step, candidates = made[0][3:]
+            halving = 0.5 ** torch.arange(candidates.safe.shape[1], dtype=D)
+            tried = safe_plan[:, :steps] + halving.view(-1, 1, 1, 1) * step.view(-1, steps, 2)  # [A, B, P, m]
+            want = checker.evaluate(x0.repeat(len(halving), 1), tried.flatten(0, 1), obstacles.repeat(len(halving)))
+            for got, expected in zip(candidates, want):  # [B, A, ...] env by env
+                torch.testing.assert_close(got.transpose(0, 1).flatten(0, 1), expected, rtol=0, atol=1e-9)
+            decide._pair = False
+            alone = decide(x0, plan, safe_plan, held, obstacles)
+            assert len(made) == 1
+            for got, expected in zip(together[:3], alone[:3]):
+                torch.testing.assert_close(got, expected, rtol=0, atol=1e-9)
+            for name, value in alone.diagnostics.items():
+                torch.testing.assert_close(together.diagnostics[name], value, rtol=0, atol=1e-9, msg=name)
+        assert together.diagnostics["intervened"].any()
+        assert together.diagnostics["adjust_iterations"].unique().numel() > 1  # the envs' outcomes differ
+
+
+@pytest.mark.filterwarnings("error::RuntimeWarning")  # no fallback to eager
 def test_the_compiled_linearisation_along_a_braking_policy_is_prepared_with_the_checks():
     """With a compiled local model and a braking policy, the adjusters' linearisation runs in the plan's compiled loop
     with the check, with the eager values, and its graph is compiled with the checks
-    (:meth:`PlanChecker.prepare_checks`, which the layer calls), not at a control step."""
+    (:meth:`PlanChecker.prepare_checks`, which the layer calls), not at a control step. The paired check that solves
+    the facet QP and checks its first candidates in the same graph (:meth:`FacetQPAdjuster._ahead`) checks the
+    policy's tail of each candidate as the checker does."""
     bicycle, eager = bicycle_checker(policy=True)
     reach = copy.deepcopy(eager.reach).compile_steps(backend="aot_eager")
     checker = PlanChecker(reach, eager.failsafe, eager.horizon, stop_dims=(3,), stop_slack=0.1,
@@ -77,6 +127,17 @@ def test_the_compiled_linearisation_along_a_braking_policy_is_prepared_with_the_
         for new, old in zip((*got[0], *got[1], got[2]), (*expected[0], *expected[1], expected[2])):
             torch.testing.assert_close(new, old, rtol=1e-9, atol=1e-12)
     assert counters["frames"]["ok"] == frames  # compiled with the checks
+    # the paired check with the program's candidates in one graph: the policy's tail as each plan's own loop takes it
+    starts, plans, paired = torch.cat((x0, x0)), torch.cat((plan, torch.zeros_like(plan))), obstacles.repeat(2)
+    evaluation, gauge, jacobian, step, candidates = FacetQPAdjuster()._ahead(checker, starts, plans, paired)
+    want = _leaf_check(checker, starts, plans, paired)
+    for new, old in zip((*evaluation, *gauge, jacobian), (*want[0], *want[1], want[2])):
+        torch.testing.assert_close(new, old, rtol=1e-9, atol=1e-12)
+    halving = 0.5 ** torch.arange(candidates.safe.shape[1], dtype=D)
+    tried = (halving.view(-1, 1, 1, 1) * step.view_as(plan)).flatten(0, 1)  # from the zero plan: [A B, P, m]
+    want = checker.evaluate(x0.repeat(len(halving), 1), tried, obstacles.repeat(len(halving)))
+    for new, old in zip(candidates, want):
+        torch.testing.assert_close(new.transpose(0, 1).flatten(0, 1), old, rtol=1e-9, atol=1e-12)
 
 
 def test_pairs_the_loops_check_cannot_certify_are_checked_eagerly(monkeypatch):

@@ -182,7 +182,8 @@ class LocalStep:
                 loop when compiled (one graph, one call): ``function(centers [..., T, n], generators [..., T, n, p],
                 covered [...], *batched, *args)``, traceable and batched over the leading dims (compiled, one flat
                 batch dim); ``batched``: tensors with the plan's batch dims first, ``args``: constants. Its results
-                ``[..., ...]`` replace ``(sets, covered)``.
+                ``[..., ...]`` replace ``(sets, covered)``; with ``tangents`` it also takes the centres' directions
+                ``[..., T, n, k]`` (keyword ``directions``), and its results replace them too.
 
         Returns:
             ``(sets [..., T], covered [...])``: ``covered`` if every step is; with ``tangents``, also
@@ -205,7 +206,8 @@ class LocalStep:
         if loop is None and finish is not None:  # the sets first, then what is computed from them
             sets, covered, *rest = self.plan_sets(center, generators, actions, tangents, brake)
             function, batched, args = finish
-            return (*function(sets.center, sets.generators, covered, *batched, *args), *rest)
+            along = {} if tangents is None else {"directions": rest.pop(0)}
+            return (*function(sets.center, sets.generators, covered, *batched, *args, **along), *rest)
         if loop is not None:
             try:
                 return self._run_compiled_loop(loop, batch, center, generators, actions, tangents, brake, finish)
@@ -270,13 +272,14 @@ class LocalStep:
         with torch.no_grad():
             if tangents is not None:
                 dc, k = dc[0], tangents[0].shape[-1]
-                if k >= 2:
-                    torch._dynamo.mark_dynamic(dc, 2)
-                    torch._dynamo.mark_dynamic(actions, 2)
+                if k >= 2:  # a `finish` may specialise it (e.g. a program of as many variables)
+                    torch._dynamo.maybe_mark_dynamic(dc, 2)
+                    torch._dynamo.maybe_mark_dynamic(actions, 2)
             tail = tail or (None, None, None)
             finishing = {} if function is None else dict(finish=function, finish_inputs=(*batched, *args))
             out = loop(center, generators, actions, dc, *tail, **finishing)
-        shapes = (((n, -1),) if tangents is not None else ()) + (((-1,),) if tail[0] is not None else ())
+        shapes = (((n, -1),) if tangents is not None and function is None else ()) + (
+            ((-1,),) if tail[0] is not None else ())
         head, per_step = out[:len(out) - len(shapes)], out[len(out) - len(shapes):]  # per step: [T, B, ...]
 
         def batch_first(t: Tensor, shape: tuple) -> Tensor:
@@ -303,7 +306,8 @@ class LocalStep:
         (a 0-d tensor) on take ``policy(centre)`` instead of their row of ``actions`` (and with ``tangent``
         ``policy_tangent(centre, directions)`` instead of its directions), and the actions taken ``[T, B, m]``
         come last. With ``finish``, ``finish(centers [B, T, n], generators [B, T, n, max_generators], covered,
-        *finish_inputs)``'s results replace the first three (:meth:`plan_sets`). The loop carries the current set only
+        *finish_inputs)``'s results replace the first three (:meth:`plan_sets`), and with ``tangent`` the directions
+        too, which it takes as ``directions`` ``[B, T, n, k]``. The loop carries the current set only
         (its shapes fixed: the step reduces to ``max_generators`` columns) and writes every step's results into buffers
         allocated once (a ``while_loop`` may mutate captured tensors without gradients); carried, the buffers were
         copied whole at every step, and the Turtlebot's 16-step plans took 3-5 % longer."""
@@ -344,9 +348,12 @@ class LocalStep:
         if tangent is not None:
             start += (tangent,)
         covered = while_loop(more, step, start)[3]
-        head = ((centers, sets, covered) if finish is None else
-                finish(centers.transpose(0, 1), sets.transpose(0, 1), covered, *finish_inputs))
-        return (*head, *((directions,) if tangent is not None else ()), *((taken,) if policy is not None else ()))
+        if finish is None:
+            head = (centers, sets, covered, *((directions,) if tangent is not None else ()))
+        else:
+            along = {} if tangent is None else {"directions": directions.transpose(0, 1)}
+            head = finish(centers.transpose(0, 1), sets.transpose(0, 1), covered, *finish_inputs, **along)
+        return (*head, *((taken,) if policy is not None else ()))
 
     def _run_compiled(self, center: Tensor, generators: Tensor, action: Tensor,
                       tangents: tuple[Tensor, Tensor] | None) -> tuple[Tensor, ...]:

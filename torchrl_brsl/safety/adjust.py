@@ -9,7 +9,7 @@ from torch import Tensor
 
 from torchrl_brsl._compiling import small_matmul
 from torchrl_brsl.safety.plan_check import (FUSE_FROM_STEPS, AffineRollout, Gauge, PlanChecker, PlanEvaluation,
-                                             plan_axes)
+                                             _checked_sets, plan_axes)
 from torchrl_brsl.sets import Obstacles
 
 
@@ -255,7 +255,9 @@ class FacetQPAdjuster:
     def prepare_obstacles(self, checker: PlanChecker, obstacles: Obstacles) -> None:
         """Compile what depends on the obstacles' shapes ``[B, K, d, ...]`` (their values unused) now: on a compiled
         local model, the program (:meth:`_compiled_step`) of the plans a layer checks, of one action (an env's action
-        without a plan) and of :attr:`~PlanChecker.plan_steps` actions, for one env and for several; otherwise nothing.
+        without a plan) and of :attr:`~PlanChecker.plan_steps` actions, for one env and for several, and the paired
+        check with the program's step and candidates (:meth:`_ahead`) of such plans for ``B`` envs (whose decisions
+        pair every env); otherwise nothing.
         :class:`~torchrl_brsl.safety.BRSLSafetyLayer` calls it with its env's obstacle specs, beside
         :meth:`PlanChecker.prepare_checks`. A plan of another length compiles at its first adjustment; obstacles
         checked by the LP have no facets to lock, and nothing is compiled for them."""
@@ -263,6 +265,7 @@ class FacetQPAdjuster:
             return
         m, d = checker.action_low.shape[-1], len(checker.position_dims)
         like, s, k = checker.action_low, len(checker.stop_dims), obstacles.center.shape[-2]
+        paired_envs = obstacles.center[..., 0, 0].numel()
         for steps in sorted({1, max(checker.plan_steps, 1)}):
             box = (*self._box(checker, steps, like), checker.action_low, checker.action_high)
             for envs in (1, 2):
@@ -272,6 +275,14 @@ class FacetQPAdjuster:
                           like.new_zeros(envs, s, steps * m), like.new_zeros(envs, s), like.new_zeros(envs, s),
                           like.new_zeros(envs, steps, m), like.new_zeros(envs, steps, m))
                 self._compiled_step(checker, locked, box)
+                if envs != min(paired_envs, 2):  # one env's paired check is a graph of its own
+                    continue
+                paired = Obstacles(like.new_zeros(2 * envs, *obstacles.center.shape[-2:]),
+                                   like.new_zeros(2 * envs, *obstacles.generators.shape[-3:]),
+                                   torch.ones(2 * envs, k, dtype=torch.bool, device=like.device))
+                with torch.no_grad():
+                    self._ahead(checker, like.new_zeros(2 * envs, checker.reach.state_dim),
+                                checker.hold(like).expand(2 * envs, steps, m), paired)
 
     def __call__(self, checker: PlanChecker, x0: Tensor, plan: Tensor, obstacles: Obstacles,
                  start: float | None = None, reference: Tensor | None = None,
@@ -290,21 +301,63 @@ class FacetQPAdjuster:
                         obstacles: Obstacles) -> tuple[PlanEvaluation, tuple | None]:
         """:meth:`PlanChecker.evaluate` of ``plan`` ``[B, P, m]``, and what this adjuster starts from on a local model,
         from the same batch, for ``reference_rollout``: the centres' Jacobian of ``reference[:, :P]`` along its sets
-        (:func:`_leaf_check`), its evaluation and its :class:`Gauge`; ``None`` where it would not use them.
+        (:func:`_leaf_check`), its evaluation, its :class:`Gauge`, and on a compiled model the program's step and its
+        first candidates' evaluation (:meth:`_ahead`, else ``None``); ``None`` where it would not use them.
 
         :class:`~torchrl_brsl.safety.SafetyDecision` calls this where the last step adjusted every env. The compiled
         plan loop with tangents pads one plan to two, so the reference rides along, its tangents costing 0.3 ms on the
-        Turtlebot's 16-step plans; a rollout of its own would cost 2.1 ms. Both are checked in one call as well.
+        Turtlebot's 16-step plans; a rollout of its own would cost 2.1 ms. Both are checked in one call as well, and on
+        a compiled model the program and the check of its first candidates run in that call's graph too: an adjusting
+        step of the Turtlebot's body-frame model (one action then braking) took 1.8-2.0 ms instead of 2.4-2.5
+        (``benchmarks/bench_layer.py``'s wall scene, the decision alone), where the proposal is checked and
+        adjusted in three calls.
         """
         if not checker.plan_dependent or checker.uses_lp(obstacles):
             return checker.evaluate(x0, plan, obstacles), None
         n_envs = x0.shape[0]
         reference = reference[:, :plan.shape[1]].to(plan)
-        starts, plans = torch.cat((x0, x0)), torch.cat((plan, reference))
-        evaluation, gauge, jacobian = _leaf_check(checker, starts, plans, obstacles.repeat(2))
+        starts, plans, paired = torch.cat((x0, x0)), torch.cat((plan, reference)), obstacles.repeat(2)
+        ahead = self._ahead(checker, starts, plans, paired)
+        if ahead is None:
+            (evaluation, gauge, jacobian), step, candidates = _leaf_check(checker, starts, plans, paired), None, None
+        else:
+            evaluation, gauge, jacobian, step, candidates = ahead
         proposal, reference_check = (PlanEvaluation(*(t[part] for t in evaluation))
                                      for part in (slice(n_envs), slice(n_envs, None)))
-        return proposal, (jacobian[n_envs:], reference_check, Gauge(*(t[n_envs:] for t in gauge)))
+        return proposal, (jacobian[n_envs:], reference_check, Gauge(*(t[n_envs:] for t in gauge)), step, candidates)
+
+    def _ahead(self, checker: PlanChecker, starts: Tensor, plans: Tensor, obstacles: Obstacles) -> tuple | None:
+        """:func:`_leaf_check` of the proposals and references ``plans`` ``[2B, P, m]`` and, in the same compiled graph
+        (:func:`_paired_ahead`), the program's step from each reference and the check of the first
+        :data:`FIRST_HALVINGS` candidates: ``(evaluation, gauge, jacobian, step [B, N], candidates)``, the candidates'
+        :class:`PlanEvaluation` env by env ``[B, A, ...]`` (``None``, with ``step``, where an env needs more rows than
+        the compiled program holds or a candidate's pair is not certified full-dimensional). ``None`` where the
+        model's plan loop is not compiled with its check (:meth:`PlanChecker._fuses_check`), or where a proposal's or
+        reference's pair is not certified (their eager check decides)."""
+        if not checker._fuses_check(starts, plans):
+            return None
+        n_envs, count, like = plans.shape[0] // 2, min(FIRST_HALVINGS, self.backtracking + 1), plans
+        box = (*self._box(checker, plans.shape[1], like), checker.action_low, checker.action_high)
+        program = (checker._position_index, checker._stop_index, self.target_margin, LOCKED_ROWS, self.iterations,
+                   self.polish, *box)
+        brake = (checker.hold(like), None) if checker.failsafe.policy is None else (None, checker._tail_brake(like))
+        batched = (obstacles.center, obstacles.generators, obstacles.mask, starts, plans)
+        finish = (_paired_ahead, batched, (checker.check_args, program, (count, *brake, checker.reach._local_step())))
+        actions, *out = checker.rollout_sets(starts, plans, plan_axes(plans, checker.reach.state_dim), finish=finish)
+        centers, generators, covered, stop_room, values, stop_excess, safe, picked, weights, full = out[:10]
+        if not bool(full.all()):
+            return None
+        evaluation = checker._in_domain(starts, PlanEvaluation(actions, centers, values, stop_excess, safe, stop_room,
+                                                               covered), generators)
+        directions, step, too_many, tried, *checked = out[10:]
+        jacobian = directions.reshape(*directions.shape[:3], *plans.shape[1:])
+        if bool(too_many.any()) or not bool(checked[-1].all()):
+            return evaluation, Gauge(picked, weights), jacobian, None, None
+        centers, generators, covered, stop_room, values, stop_excess, safe = checked[:7]
+        candidates = checker._in_domain(starts[:n_envs].repeat(count, 1), PlanEvaluation(
+            tried, centers, values, stop_excess, safe, stop_room, covered), generators)
+        by_env = PlanEvaluation(*(t.unflatten(0, (count, n_envs)).transpose(0, 1) for t in candidates))
+        return evaluation, Gauge(picked, weights), jacobian, step, by_env
 
     def _adjust(self, checker: PlanChecker, x0: Tensor, plan: Tensor, obstacles: Obstacles,
                 reference: Tensor, reference_rollout: tuple | None) -> Adjustment:
@@ -312,13 +365,48 @@ class FacetQPAdjuster:
         reference = reference[:, :horizon]
         if reference.dtype != plan.dtype or reference.device != plan.device:
             reference = reference.to(plan)
+        step = checked = None
         if reference_rollout is not None:  # from :meth:`evaluate_paired`: the reference's Jacobian and check
-            jacobian, ref_eval, gauge = reference_rollout
+            jacobian, ref_eval, gauge, step, checked = reference_rollout
         else:
             if checker.plan_dependent:  # a local model: one rollout checks the reference and gives its Jacobian
                 ref_eval, gauge, jacobian = _leaf_check(checker, x0, reference, obstacles)
             else:
                 (ref_eval, gauge), jacobian = checker.evaluate_with_gauge(x0, reference, obstacles), None
+        if step is None:
+            step = self._program_step(checker, x0, plan, reference, obstacles, ref_eval, gauge, jacobian)
+        step = step.view_as(reference)
+        if checker.plan_dependent:  # a check costs a rollout of sets: the halvings in one or two batches
+            first = FIRST_HALVINGS if self._early >= EARLY_SHARE else self.backtracking + 1
+            adjustment = _first_safe(checker, x0, reference, step, obstacles, ref_eval, self.backtracking,
+                                     first_batch=first, checked=checked)
+            early = float((adjustment.iterations <= FIRST_HALVINGS).double().mean())
+            self._early = 0.8 * self._early + 0.2 * early
+            return adjustment
+        best_plan, best_eval = reference, ref_eval
+        accepted = torch.zeros(n_envs, dtype=torch.bool, device=plan.device)
+        tries = torch.zeros(n_envs, dtype=torch.long, device=plan.device)
+        for attempt in range(self.backtracking + 1):
+            candidate = reference + step / (2 ** attempt) if attempt else reference + step
+            evaluation = checker.evaluate(x0, candidate, obstacles)
+            if attempt == 0 and bool(evaluation.safe.all()):  # the usual case: no merging needed
+                return Adjustment(candidate, evaluation, torch.ones_like(tries))
+            take = evaluation.safe & ~accepted
+            tries += (~accepted).long()
+            best_plan = torch.where(take.view(-1, 1, 1), candidate, best_plan)
+            best_eval = PlanEvaluation(*(torch.where(take.view(-1, *[1] * (new.ndim - 1)), new, old)
+                                         for new, old in zip(evaluation, best_eval)))
+            accepted |= take
+            if bool(accepted.all()):
+                break
+        return Adjustment(best_plan, best_eval, tries)
+
+    def _program_step(self, checker: PlanChecker, x0: Tensor, plan: Tensor, reference: Tensor, obstacles: Obstacles,
+                      ref_eval: PlanEvaluation, gauge: Gauge, jacobian: Tensor | None) -> Tensor:
+        """The program's step ``[B, N]`` from ``reference`` towards ``plan`` ``[B, P, m]``: the pairs locked by the
+        reference's ``gauge``, its centres linearised in the plan (``jacobian`` ``[B, T, n, P, m]`` along a local
+        model's sets, where at hand)."""
+        n_envs, horizon = plan.shape[:2]
         affine = checker.affine_for(x0, reference)  # None for a local model
         if affine is None and _feedback_linearisable(checker, x0, reference):  # braking policy: linearised tail
             jacobian = _feedback_jacobian(checker, ref_eval.centers, horizon)  # [B, T, n, N]
@@ -342,31 +430,7 @@ class FacetQPAdjuster:
         step = self._compiled_step(checker, locked, box)
         if step is None:
             step = _locked_step(*locked, *box, self.target_margin, None, self.iterations, self.polish)[0]
-        step = step.view_as(reference)
-        if checker.plan_dependent:  # a check costs a rollout of sets: the halvings in one or two batches
-            first = FIRST_HALVINGS if self._early >= EARLY_SHARE else self.backtracking + 1
-            adjustment = _first_safe(checker, x0, reference, step, obstacles, ref_eval, self.backtracking,
-                                     first_batch=first)
-            early = float((adjustment.iterations <= FIRST_HALVINGS).double().mean())
-            self._early = 0.8 * self._early + 0.2 * early
-            return adjustment
-        best_plan, best_eval = reference, ref_eval
-        accepted = torch.zeros(n_envs, dtype=torch.bool, device=plan.device)
-        tries = torch.zeros(n_envs, dtype=torch.long, device=plan.device)
-        for attempt in range(self.backtracking + 1):
-            candidate = reference + step / (2 ** attempt) if attempt else reference + step
-            evaluation = checker.evaluate(x0, candidate, obstacles)
-            if attempt == 0 and bool(evaluation.safe.all()):  # the usual case: no merging needed
-                return Adjustment(candidate, evaluation, torch.ones_like(tries))
-            take = evaluation.safe & ~accepted
-            tries += (~accepted).long()
-            best_plan = torch.where(take.view(-1, 1, 1), candidate, best_plan)
-            best_eval = PlanEvaluation(*(torch.where(take.view(-1, *[1] * (new.ndim - 1)), new, old)
-                                         for new, old in zip(evaluation, best_eval)))
-            accepted |= take
-            if bool(accepted.all()):
-                break
-        return Adjustment(best_plan, best_eval, tries)
+        return step
 
     def _compiled_step(self, checker: PlanChecker, locked: tuple[Tensor, ...], box: tuple[Tensor, ...]
                        ) -> Tensor | None:
@@ -392,7 +456,8 @@ class FacetQPAdjuster:
 
 
 FIRST_HALVINGS = 2
-"""Candidates of :func:`_first_safe` checked in its first batch when most adjustments take one of them."""
+"""Candidates of :func:`_first_safe` checked in its first batch when most adjustments take one of them, and in the
+paired check's graph (:meth:`FacetQPAdjuster._ahead`) always."""
 
 EARLY_SHARE = 0.6
 """The facet QP checks its full and half step first, and the other halvings only for the envs where both fail,
@@ -406,27 +471,35 @@ one of the two (11.0-11.4 -> 8.8-9.7 ms a step, with :meth:`FacetQPAdjuster.eval
 
 
 def _first_safe(checker: PlanChecker, x0: Tensor, reference: Tensor, step: Tensor, obstacles: Obstacles,
-                ref_eval: PlanEvaluation, backtracking: int, first_batch: int | None = None) -> Adjustment:
+                ref_eval: PlanEvaluation, backtracking: int, first_batch: int | None = None,
+                checked: PlanEvaluation | None = None) -> Adjustment:
     """The first safe of ``reference + step / 2^a``, ``a = 0 .. backtracking``, per env: the first ``first_batch``
-    (``None``: all) in one batch, the others in a second batch for the envs that found none.
+    (``None``: all) in one batch, the others in a second batch for the envs that found none. ``checked``: the first
+    batch's evaluation, env by env ``[B, A, ...]``, made ahead (:meth:`FacetQPAdjuster._ahead`; its candidates are
+    its actions, as checked), which sets the first batch's size.
 
     The same choice as checking them in turn (the reference's evaluation where none is safe);
     ``iterations`` counts the candidates up to the one taken.
     """
-    n_envs, attempts = reference.shape[0], backtracking + 1
+    n_envs, attempts, horizon = reference.shape[0], backtracking + 1, reference.shape[1]
     taken_at = torch.full((n_envs,), attempts, dtype=torch.long, device=step.device)  # attempts: none safe
     plan, chosen = reference, ref_eval
     todo = torch.arange(n_envs, device=step.device)
-    split = attempts if first_batch is None else min(first_batch, attempts)
+    split = checked.safe.shape[1] if checked is not None else attempts if first_batch is None else first_batch
+    split = min(split, attempts)
     for tried in (range(split), range(split, attempts)):
         if not len(tried) or not len(todo):
             continue
         count, size = len(tried), len(todo)
-        halving = 2.0 ** -torch.arange(tried.start, tried.stop, dtype=step.dtype, device=step.device)
-        starts, refs, steps, batch = ((x0, reference, step, obstacles) if size == n_envs  # every env: no copies
-                                      else (x0[todo], reference[todo], step[todo], obstacles[todo]))
-        candidates = (refs + halving.view(-1, 1, 1, 1) * steps).flatten(0, 1)  # [A b, P, m]
-        evaluation = checker.evaluate(torch.cat((starts,) * count), candidates, batch.repeat(count))
+        if checked is not None and tried.start == 0:  # every env, halving by halving
+            evaluation = PlanEvaluation(*(t[:, :count].transpose(0, 1).flatten(0, 1) for t in checked))
+            candidates = evaluation.actions[:, :horizon]
+        else:
+            halving = 2.0 ** -torch.arange(tried.start, tried.stop, dtype=step.dtype, device=step.device)
+            starts, refs, steps, batch = ((x0, reference, step, obstacles) if size == n_envs  # every env: no copies
+                                          else (x0[todo], reference[todo], step[todo], obstacles[todo]))
+            candidates = (refs + halving.view(-1, 1, 1, 1) * steps).flatten(0, 1)  # [A b, P, m]
+            evaluation = checker.evaluate(torch.cat((starts,) * count), candidates, batch.repeat(count))
         safe = evaluation.safe.view(count, size)
         found, taken = safe.any(0), safe.to(torch.uint8).argmax(0)  # [b]: the first safe candidate's row
         envs, pick = todo[found], (taken * size + torch.arange(size, device=step.device))[found]
@@ -435,6 +508,47 @@ def _first_safe(checker: PlanChecker, x0: Tensor, reference: Tensor, step: Tenso
         chosen = PlanEvaluation(*(old.index_copy(0, envs, new[pick]) for new, old in zip(evaluation, chosen)))
         todo = todo[~found]
     return Adjustment(plan, chosen, (taken_at + 1).clamp_max(attempts))
+
+
+def _paired_ahead(centers: Tensor, generators: Tensor, covered: Tensor, obstacle_centers: Tensor,
+                  obstacle_generators: Tensor, mask: Tensor, starts: Tensor, plans: Tensor, check: tuple,
+                  program: tuple, tail: tuple, directions: Tensor) -> tuple[Tensor, ...]:
+    """The ``finish`` of the paired plans' loop (:meth:`FacetQPAdjuster._ahead`): the check of the proposals and
+    references ``plans`` ``[2B, P, m]`` from ``starts`` ``[2B, n]`` (their sets ``[2B, T, ...]``, the obstacles ``[2B,
+    K, ...]`` twice), then the facet QP's step from each reference (:func:`_locked_step`, on the reference's gauge and
+    centres' ``directions`` ``[2B, T, n, P m]``) and the check of its first ``A`` halvings ``reference + step / 2^a``
+    in a second loop of the model's sets: ``(*checked, directions, step [B, N], too_many [B], actions [A B, T, m],
+    *candidates_checked)`` (:func:`~torchrl_brsl.safety.plan_check._checked_sets`, the candidates halving by halving).
+
+    ``check``: the checker's :attr:`~PlanChecker.check_args`; ``program``: ``(position_dims, stop_dims, margin,
+    rows_kept, iterations, polish, *box)``; ``tail``: ``(A, hold, policy, local_step)``, the braking tail's open-loop
+    action ``[m]`` or its traceable policy, and the model's :class:`~torchrl_brsl.reach.local_step.LocalStep`.
+    """
+    checked = _checked_sets(centers, generators, covered, obstacle_centers, obstacle_generators, mask, *check)
+    position_dims, stop_dims, margin, rows_kept, iterations, polish, *box = program
+    count, hold, policy, local = tail
+    n_envs, (plan_steps, m) = plans.shape[0] // 2, plans.shape[1:]
+    reference, moved = plans[n_envs:], directions[n_envs:]  # the references' half
+    room = checked[3][n_envs:] * (1 - 1e-9)  # not exactly on the boundary, where rounding decides
+    step, too_many = _locked_step(checked[7][n_envs:], checked[8][n_envs:], moved[:, :, position_dims], mask[:n_envs],
+                                  moved[:, -1, stop_dims], centers[n_envs:, -1, stop_dims], room, reference,
+                                  plans[:n_envs], *box, margin, rows_kept, iterations, polish)
+    halving = 2.0 ** -torch.arange(count, dtype=step.dtype, device=step.device)
+    tried = (reference + halving.view(-1, 1, 1, 1) * step.view_as(reference)).flatten(0, 1)  # [A B, P, m]
+    tail_steps = centers.shape[1] - plan_steps
+    rows = tried.shape[0]
+    actions = torch.cat((tried, tried.new_zeros(rows, tail_steps, m) if hold is None else
+                         hold.expand(rows, tail_steps, m)), 1)
+    start = starts[:n_envs].repeat(count, 1)
+    again = local._loop(start, start.new_zeros(*start.shape, local.max_generators),
+                        actions.transpose(0, 1).contiguous(), None, policy,
+                        torch.tensor(plan_steps, device=start.device) if policy is not None else None,
+                        finish=_checked_sets, finish_inputs=(obstacle_centers[:n_envs].repeat(count, 1, 1),
+                                                             obstacle_generators[:n_envs].repeat(count, 1, 1, 1),
+                                                             mask[:n_envs].repeat(count, 1), *check))
+    if policy is not None:
+        actions, again = again[-1].transpose(0, 1), again[:-1]
+    return (*checked, directions, step, too_many, actions, *again)
 
 
 def _feedback_linearisable(checker: PlanChecker, x0: Tensor, plan: Tensor) -> bool:

@@ -295,8 +295,8 @@ def _for_envs(checker: PlanChecker, selected: Tensor, obstacles: Obstacles) -> t
 
 def _take(value, idx: Tensor | None):
     """``value[idx]`` (a tensor, :class:`Obstacles`, :class:`Zonotope` or a named tuple of per-env tensors), or ``value``
-    itself for every env."""
-    if idx is None:
+    itself for every env (and ``None``)."""
+    if idx is None or value is None:
         return value
     return type(value)(*(field[idx] for field in value)) if isinstance(value, tuple) else value[idx]
 

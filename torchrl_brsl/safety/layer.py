@@ -334,13 +334,14 @@ class BRSLSafetyLayer(Transform):
             _check_structure(keys[2], mask, batch, (center.shape[-2],), reference, dtype="any")
             polytopes = _join(self.obstacles_key, "constraint_matrix") in observations.keys(True)
             if not polytopes:  # polytopes are checked by the LP: nothing to compile
-                first = (0,) * len(batch)
-                self._prepare_checks(Obstacles(center[first][None], generators[first][None], mask[first][None].bool()))
+                self._prepare_checks(Obstacles(center.reshape(-1, *center.shape[-2:]),
+                                               generators.reshape(-1, *generators.shape[-3:]),
+                                               mask.reshape(-1, mask.shape[-1]).bool()))
 
     def _prepare_checks(self, obstacles: Obstacles) -> None:
-        """Compile a compiled local model's checks and its adjuster's programs for the env's obstacle shapes now
-        (:meth:`PlanChecker.prepare_checks`, the adjuster's ``prepare_obstacles`` if it has one), not at the first
-        step."""
+        """Compile a compiled local model's checks and its adjuster's programs for the env's obstacle shapes ``[B, K,
+        ...]`` (``B`` envs) now (:meth:`PlanChecker.prepare_checks`, the adjuster's ``prepare_obstacles`` if it has
+        one), not at the first step."""
         if not any(reach is not None and reach.plan_dependent and reach.compile_options is not None
                    for reach in (self.reach, self.local_reach)):
             return

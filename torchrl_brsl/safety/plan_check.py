@@ -546,9 +546,7 @@ class PlanChecker:
             raise ValueError("`tangents` need a local model's own rollout (no `rollout`)")
         lp, moved, compiled_gauge = self.uses_lp(obstacles), (), True
         if self.plan_dependent and rollout is None and not lp and self._fuses_check(x0, plan):
-            finish = (_checked_sets, (obstacles.center, obstacles.generators, obstacles.mask),
-                      (self._position_index, self.set_width, self._stop_index, self.stop_tolerance, self.stop_slack,
-                       self._threshold))
+            finish = (_checked_sets, (obstacles.center, obstacles.generators, obstacles.mask), self.check_args)
             actions, *checked = self.rollout_sets(x0, plan, tangents, finish=finish)
             moved = (checked.pop(),) if tangents is not None else ()
             centers, generators, covered, stop_room, values, stop_excess, safe, picked, weights, full = checked
@@ -608,6 +606,13 @@ class PlanChecker:
             torch.is_grad_enabled() and (plan.requires_grad or x0.requires_grad))
 
     _fused_checks = True  # the check in the plan's loop (False: after it, for comparison; benchmarks/bench_check.py)
+
+    @property
+    def check_args(self) -> tuple:
+        """The constants of :func:`_checked_sets` after the obstacles (a ``finish`` of the plan's loop checks with
+        them): the position and stop dims, the sets' projected width, the stop tolerance and slack, the threshold."""
+        return (self._position_index, self.set_width, self._stop_index, self.stop_tolerance, self.stop_slack,
+                self._threshold)
 
     def uses_lp(self, obstacles: Obstacles) -> bool:
         """Whether ``obstacles`` are checked by the LP (``collision``): polytopes, or a space beyond 3-D."""
@@ -810,17 +815,18 @@ def plan_axes(plan: Tensor, state_dim: int) -> tuple[Tensor, Tensor]:
 def _checked_sets(centers: Tensor, generators: Tensor, covered: Tensor, obstacle_centers: Tensor,
                   obstacle_generators: Tensor, mask: Tensor, index: slice | list[int], width: int,
                   stop_index: slice | list[int], stop_tolerance: Tensor, stop_slack: Tensor | None,
-                  threshold: float) -> tuple[Tensor, ...]:
+                  threshold: float, directions: Tensor | None = None) -> tuple[Tensor, ...]:
     """The check of a plan's sets ``Z(centers [B, T, n], generators [B, T, n, p])``, ``covered`` ``[B]``, against the
     obstacles ``Z(obstacle_centers [B, K, d], obstacle_generators [B, K, d, q])`` (``mask`` ``[B, K]``), traced after
     the plan's loop, in its graph (:meth:`PlanChecker.evaluate_with_gauge`): ``(centers, generators, covered,
     stop_room, values, stop_excess, safe, picked, weights, full)`` (:func:`_stop_room`, :func:`_verdict`,
-    :func:`_plan_gauge`), valid where ``full``."""
+    :func:`_plan_gauge`), valid where ``full``; the centres' ``directions`` ``[B, T, n, k]`` last where given."""
     stop_room = _stop_room(generators, stop_tolerance, stop_slack, stop_index)
     values, picked, weights, full = _plan_gauge(generators, centers, obstacle_centers, obstacle_generators, index,
                                                 width)
     return (centers, generators, covered, stop_room,
-            *_verdict(values, mask, centers, stop_room, covered, stop_index, threshold), picked, weights, full)
+            *_verdict(values, mask, centers, stop_room, covered, stop_index, threshold), picked, weights, full,
+            *(() if directions is None else (directions,)))
 
 
 def _stop_room(generators: Tensor, tolerance: Tensor, slack: Tensor | None, index: slice | list[int]) -> Tensor:
