@@ -265,7 +265,7 @@ class FacetQPAdjuster:
             return
         m, d = checker.action_low.shape[-1], len(checker.position_dims)
         like, s, k = checker.action_low, len(checker.stop_dims), obstacles.center.shape[-2]
-        paired_envs = obstacles.center[..., 0, 0].numel()
+        paired_envs = obstacles.center.shape[:-2].numel()
         for steps in sorted({1, max(checker.plan_steps, 1)}):
             box = (*self._box(checker, steps, like), checker.action_low, checker.action_high)
             for envs in (1, 2):
