@@ -183,9 +183,9 @@ def test_facet_qp_checks_its_halvings_in_one_batch_once_few_adjustments_take_the
     plan, reference = torch.ones(1, N_PLAN, 2, dtype=torch.float64), torch.zeros(1, N_PLAN, 2, dtype=torch.float64)
     batches, first_safe = [], adjust._first_safe
 
-    def deep(*args, first_batch=None):  # as if every adjustment had needed the last halving
+    def deep(*args, first_batch=None, **kwargs):  # as if every adjustment had needed the last halving
         batches.append(first_batch)
-        found = first_safe(*args, first_batch=first_batch)
+        found = first_safe(*args, first_batch=first_batch, **kwargs)
         return found._replace(iterations=torch.full_like(found.iterations, 5))
 
     monkeypatch.setattr(adjust, "_first_safe", deep)
