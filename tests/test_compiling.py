@@ -175,3 +175,16 @@ def test_cached_loops_that_differ_only_in_their_body_keep_their_own_graphs(cache
     """The cache's key holds the loop's body: a loop adding 1.5 is not served the graph of one adding 0.5, which the
     cache holds (it serves that one again), with this package's options."""
     assert cached_runs["package"] == [([1.5, 1.5], False), ([4.5, 4.5], False), ([1.5, 1.5], True)]
+
+
+def test_quick_tracing_turns_the_fake_tensor_cache_off_for_its_call_only():
+    """The warm-ups' setting (``quick_tracing``) holds inside the call and is restored after it, an error included."""
+    def fails():
+        assert not torch._dynamo.config.fake_tensor_cache_enabled
+        raise KeyError("inside")
+
+    assert torch._dynamo.config.fake_tensor_cache_enabled  # dynamo's default
+    assert _compiling.quick_tracing(lambda: torch._dynamo.config.fake_tensor_cache_enabled)() is False
+    with pytest.raises(KeyError, match="inside"):
+        _compiling.quick_tracing(fails)()
+    assert torch._dynamo.config.fake_tensor_cache_enabled

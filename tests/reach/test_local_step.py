@@ -8,6 +8,7 @@ import shutil
 import pytest
 import torch
 from torch._dynamo.utils import counters
+from torch._subclasses.fake_tensor import FakeTensorMode
 
 from torchrl_brsl.reach import KinematicBicycle
 from torchrl_brsl.sets import Zonotope
@@ -53,8 +54,10 @@ def test_compiled_steps_give_the_eager_sets_and_the_sampling_has_teeth(bicycle):
     x0, plans, _ = random_plans(system, n_plans=6, horizon=12)
     batches = (1, 6, 3)  # batch 1 is a graph of its own; later sizes reuse the symbolic graph
     eager = [_sets(model.compile_steps(False), x0[:b], plans[:b]) for b in batches]
+    misses = FakeTensorMode.cache_misses
     model.compile_steps(backend="aot_eager")  # compiles the checking and linearisation graphs (warm-up)
     step, compiled_frames = _step_of(model), counters["frames"]["ok"]
+    assert FakeTensorMode.cache_misses == misses  # traced without the fake-tensor cache (quick_tracing)
     for batch, expected in zip(batches, eager):
         _assert_same(_sets(model, x0[:batch], plans[:batch]), expected)
     generators = x0.new_zeros(6, x0.shape[-1], 24)
@@ -65,6 +68,7 @@ def test_compiled_steps_give_the_eager_sets_and_the_sampling_has_teeth(bicycle):
     start = x0[:2].clone().requires_grad_(True)
     model.reach(Zonotope.from_point(start), plans[:2]).center.sum().backward()
     assert counters["frames"]["ok"] > compiled_frames  # teeth: the counter sees a new graph (gradients)
+    assert FakeTensorMode.cache_misses > misses  # teeth: one compiled outside a warm-up traces with the cache
     assert sampled(system, model).violations == 0
     errors = model.cell_errors.clone()
     try:  # teeth: the leaves' error intervals scaled by 0.3 (as in the body-frame test) let states out

@@ -6,6 +6,7 @@ import torch
 from tensordict import TensorDict
 from torchrl.envs import ParallelEnv, SerialEnv, TransformedEnv
 from torch._dynamo.utils import counters
+from torch._subclasses.fake_tensor import FakeTensorMode
 from torchrl.envs.utils import check_env_specs
 
 import envs
@@ -204,9 +205,10 @@ def test_a_compiled_local_model_compiles_its_checks_when_appended_to_the_env():
     reach = copy.deepcopy(fitted_reach(TASK, method="local")).compile_steps(backend="aot_eager")
     layer = BRSLSafetyLayer(reach, Failsafe(info.braking_action, info.n_brk), info.n_plan, stop_dims=info.velocity_dims,
                             action_low=info.action_low, action_high=info.action_high)
-    frames = counters["frames"]["ok"]
+    frames, misses = counters["frames"]["ok"], FakeTensorMode.cache_misses
     env = TransformedEnv(envs.make(TASK, seed=0), layer)
     assert counters["frames"]["ok"] > frames
+    assert FakeTensorMode.cache_misses == misses  # traced without the fake-tensor cache (quick_tracing)
     frames = counters["frames"]["ok"]
     td = env.rollout(3)
     assert counters["frames"]["ok"] == frames and not td["next", "collision"].any()

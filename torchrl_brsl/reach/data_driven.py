@@ -9,6 +9,7 @@ import torch
 from tensordict import TensorDict
 from torch import Tensor, nn
 
+from torchrl_brsl._compiling import quick_tracing
 from torchrl_brsl.reach.body_frame import BodyFrame
 from torchrl_brsl.reach.cells import Cells, fit_cells, held_out_factors
 from torchrl_brsl.reach.lipschitz import covering_radius, residual_lipschitz
@@ -503,18 +504,23 @@ class DataDrivenReach(nn.Module):
         self._compile = (dict(compile_kwargs), functions, loop) if enabled else None
         self._cache.pop(("step",), None)
         if enabled and warm_up and self.plan_dependent:
-            center, action = self.x_minus[:2], self.u_minus[:2]
-            generators = center.new_zeros(*center.shape, self.max_generators)
-            tangents = (center.new_zeros(*center.shape, 2), action.new_zeros(*action.shape, 2))
-            with torch.no_grad():
-                self.step_sets(center, generators, action)
-                self.step_sets(center, generators, action, tangents)
-                plan = action.unsqueeze(-2).expand(-1, 2, -1)
-                plan_tangents = tangents[1].unsqueeze(-3).expand(-1, 2, -1, -1)
-                self._local_step().plan_sets(center, generators, plan)
-                self._local_step().plan_sets(center[:1], generators[:1], plan[:1])  # one plan: a graph of its own
-                self._local_step().plan_sets(center, generators, plan, (tangents[0], plan_tangents))
+            self._warm_up()
         return self
+
+    @quick_tracing
+    def _warm_up(self) -> None:
+        """Compile the steps' and the plans' graphs (with and without tangents) on two offline states."""
+        center, action = self.x_minus[:2], self.u_minus[:2]
+        generators = center.new_zeros(*center.shape, self.max_generators)
+        tangents = (center.new_zeros(*center.shape, 2), action.new_zeros(*action.shape, 2))
+        with torch.no_grad():
+            self.step_sets(center, generators, action)
+            self.step_sets(center, generators, action, tangents)
+            plan = action.unsqueeze(-2).expand(-1, 2, -1)
+            plan_tangents = tangents[1].unsqueeze(-3).expand(-1, 2, -1, -1)
+            self._local_step().plan_sets(center, generators, plan)
+            self._local_step().plan_sets(center[:1], generators[:1], plan[:1])  # one plan: a graph of its own
+            self._local_step().plan_sets(center, generators, plan, (tangents[0], plan_tangents))
 
     @property
     def compile_options(self) -> dict | None:

@@ -7,7 +7,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchrl_brsl._compiling import small_matmul
+from torchrl_brsl._compiling import quick_tracing, small_matmul
 from torchrl_brsl.safety.plan_check import (FUSE_FROM_STEPS, AffineRollout, Gauge, PlanChecker, PlanEvaluation,
                                              _checked_sets, plan_axes)
 from torchrl_brsl.sets import Obstacles
@@ -252,6 +252,7 @@ class FacetQPAdjuster:
         (:func:`prepare_linearisation`); :class:`~torchrl_brsl.safety.SafetyDecision` calls it for its checkers."""
         prepare_linearisation(checker)
 
+    @quick_tracing
     def prepare_obstacles(self, checker: PlanChecker, obstacles: Obstacles) -> None:
         """Compile what depends on the obstacles' shapes ``[B, K, d, ...]`` (their values unused) now: on a compiled
         local model, the program (:meth:`_compiled_step`) of the plans a layer checks, of one action (an env's action
@@ -604,6 +605,7 @@ def _brake_jacobian(checker: PlanChecker, states: Tensor) -> Tensor:
     return checker.brake_tangent(states)
 
 
+@quick_tracing
 def prepare_linearisation(checker: PlanChecker) -> None:
     """Compile the linearisation the adjusters run on ``checker``, so that no control step stalls on it: with a
     compiled global model and a braking policy, the Jacobian chain along a tail of

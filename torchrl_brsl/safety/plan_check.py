@@ -9,7 +9,7 @@ from typing import Any, Callable, NamedTuple, Sequence
 import torch
 from torch import Tensor
 
-from torchrl_brsl._compiling import inductor_kwargs, own_code, plain_layout, warn_fallback
+from torchrl_brsl._compiling import inductor_kwargs, own_code, plain_layout, quick_tracing, warn_fallback
 from torchrl_brsl.collision import (PairFacets, ZonotopeCollisionChecker, collision_value, pair_facets, pair_gauge,
                                     split_pair_facets)
 from torchrl_brsl.collision.closed_form import CLOSED_FORM_DIMS, rows_at
@@ -343,6 +343,7 @@ class PlanChecker:
         return self.memo(("action bounds", device), lambda: tuple(
             bound.to(device=device, dtype=self.action_dtype) for bound in (self.action_low, self.action_high)))
 
+    @quick_tracing
     def _warm_up_tails(self) -> None:
         """Compile the braking policy's tail now, not at a control step: the local model's in the plan's loop (one
         plan and several are graphs of their own), the global model's for the tails the layer checks (braking from
@@ -354,6 +355,7 @@ class PlanChecker:
             for length, plans in itertools.product(lengths, (1, 2) if self.plan_dependent else (1,)):
                 rollout(rest.expand(plans, -1), self.hold(rest).expand(plans, length, -1))
 
+    @quick_tracing
     def prepare_checks(self, obstacles: Obstacles) -> None:
         """Compile the closed-form check of a compiled local model's sets (:meth:`evaluate_with_gauge`) for obstacles of
         the shapes of ``obstacles`` ``[B, K, d, ...]`` (their values unused) now, not at the first control step: each
