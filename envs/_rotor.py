@@ -203,6 +203,7 @@ class CascadeController:
         dt: time between updates (s).
 
     Attributes:
+        data: the ``mujoco.MjData`` it reads and writes.
         command: the held velocity command ``[3]`` (m/s), a list.
         offset: the integral offset ``[3]`` (m/s), a list.
         saturated: per axis, whether the last update clipped the acceleration demand.
@@ -210,7 +211,7 @@ class CascadeController:
 
     def __init__(self, airframe: Airframe, data, integral_gain: float = 0.0, drag: float = 0.0,
                  dt: float = TIMESTEP):
-        self._data = data
+        self.data = data
         self._drag = drag / airframe.mass
         self._mass = airframe.mass
         self._inertia = tuple(float(value) for value in airframe.inertia)
@@ -232,7 +233,7 @@ class CascadeController:
 
     def update(self) -> None:
         """Reads the state from ``data`` and writes the rotor thrusts to ``data.ctrl``."""
-        data = self._data
+        data = self.data
         _, _, _, qw, qx, qy, qz = data.qpos.tolist()
         vx, vy, vz, wx, wy, wz = data.qvel.tolist()
         # body-to-world rotation matrix R (columns: body axes in world coordinates)
@@ -339,6 +340,11 @@ class RotorTask:
         super()._bind(physics)
         self._data = physics.data.ptr
         self._controller = CascadeController(self.airframe, self._data, self.integral_gain, self.drag_feedforward)
+        physics.onboard = self._onboard
+
+    def rebind(self, physics) -> None:
+        """The onboard controller flies ``physics`` (a copy's), its memory (command, offset) kept."""
+        self._data = self._controller.data = physics.data.ptr
         physics.onboard = self._onboard
 
     def _onboard(self) -> None:

@@ -97,6 +97,11 @@ class SafetyTask(base.Task):
     def _bind(self, physics) -> None:
         """Caches model ids; called once per physics."""
 
+    def rebind(self, physics) -> None:
+        """Act on ``physics`` from now on: a copy of the one the task was bound to, with the same model
+        (:meth:`envs.SafetyTaskEnv.__deepcopy__`). Only a task that holds the physics' data itself (a rotor robot's
+        onboard controller) has anything to re-point; the others read the physics each call passes them."""
+
     def _new_layout(self, rng: np.random.RandomState) -> Layout:
         raise NotImplementedError
 

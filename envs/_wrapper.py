@@ -2,6 +2,8 @@
 ``obstacles``, bool flags."""
 from __future__ import annotations
 
+from copy import deepcopy
+
 import mujoco
 import numpy as np
 import torch
@@ -104,6 +106,23 @@ class SafetyTaskEnv(DMControlWrapper):
     def physics(self):
         """The dm_control ``Physics`` of the task."""
         return self._env.physics
+
+    def __deepcopy__(self, memo: dict) -> SafetyTaskEnv:
+        """A copy that steps as this env would from here on: its own physics, task and random state.
+
+        MuJoCo's copy of the simulation keeps its state (positions, velocities, controls) but not what was derived
+        from it, such as the actuators' velocities, which dm_control's next step reads before deriving them again: a
+        velocity servo's first step would push as if from rest. The copy derives them from its state
+        (``Physics.forward``), and its task acts on its physics (:meth:`envs._task.SafetyTask.rebind`: a rotor robot's
+        onboard controller), so its steps are the original's to the bit.
+        """
+        rebuild, args, state, *_ = self.__reduce_ex__(4)
+        copied = rebuild(*args)
+        memo[id(self)] = copied
+        copied.__setstate__(deepcopy(state, memo))
+        copied.physics.forward()
+        copied.task.rebind(copied.physics)
+        return copied
 
     @property
     def task(self):

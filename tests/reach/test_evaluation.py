@@ -1,11 +1,13 @@
-"""Checking fitted sets against the true system: the worst-noise one-step check, and the containment test."""
+"""Checking fitted sets against the true system: the worst-noise one-step check, the containment test, and sampled
+trajectories of a simulated robot."""
 import types
 
 import pytest
 import torch
 
-from torchrl_brsl.reach import (DoubleIntegrator, noiseless_transitions, points_outside, sample_reach,
-                                worst_noise_outside)
+import envs
+from torchrl_brsl.reach import (DataDrivenReach, DoubleIntegrator, env_sample_reach, noiseless_transitions,
+                                points_outside, sample_reach, worst_noise_outside)
 from torchrl_brsl.sets import Zonotope
 
 from reach_support import shared_fit
@@ -91,3 +93,34 @@ def test_points_outside_checks_a_dim_of_zero_width_exactly_without_an_lp(monkeyp
     past_edge[..., 0] = sets.center[..., 0] + 1.001 * generators[:, 0].abs().sum(-1)
     assert not points_outside(sets, inside).any()
     assert points_outside(sets, off_exact).all() and points_outside(sets, past_edge).all()
+
+
+def test_env_sample_reach_spreads_copies_of_a_mujoco_robot_by_their_noise_alone():
+    """Each plan's trajectories start from one reached state in copies of the env that differ only by their noise's
+    seed: the local model's sets hold them with widths a few times their spread; without noise every copy takes the
+    same path (no spread: the ratio explodes); sets shrunk (leaves' errors and noise to 0.3) let states out."""
+    info = envs.safety_info("point_boxes")
+    torch.manual_seed(0)
+    noise = Zonotope(info.noise_center.double(), info.noise_generators.double())
+    reach = DataDrivenReach.from_env(envs.make("point_boxes", empty=True, seed=1), noise, steps=500,
+                                     translation_invariant_dims=info.position_dims, max_generators=30)
+    env = envs.make("point_boxes", empty=True, seed=2, episode_steps=10_000)
+    bounds = (info.action_low, info.action_high, info.braking_action)
+    horizon = info.n_brk + 1
+    result = env_sample_reach(reach, env, 6, horizon, *bounds, samples=30)
+    assert result.outside.shape == result.width_ratio.shape == (6, horizon) and result.samples == 30
+    assert result.checked >= 3 * horizon * 30 and result.violations == 0
+    assert 1.0 <= result.median_ratio < 10.0
+    env.task.noise_scale = 0.0
+    assert env_sample_reach(reach, env, 2, horizon, *bounds, samples=5).median_ratio > 1e6
+    env.task.noise_scale = 1.0
+    errors, noise = reach.cell_errors.clone(), reach.noise_generators.clone()
+    try:
+        reach.cell_errors.mul_(0.3)
+        reach.noise_generators.mul_(0.3)
+        assert env_sample_reach(reach, env, 6, horizon, *bounds, samples=30).violations > 0
+    finally:
+        reach.cell_errors.copy_(errors)
+        reach.noise_generators.copy_(noise)
+    with pytest.raises(TypeError, match="`env` must be a task of `envs`"):
+        env_sample_reach(reach, types.SimpleNamespace(), 1, horizon, *bounds)

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import itertools
+from copy import deepcopy
 from typing import Callable, NamedTuple
 
 import torch
@@ -71,10 +72,64 @@ def sample_reach(reach: DataDrivenReach, step: Callable[[Tensor, Tensor], Tensor
         for action in plans[p]:
             x = step(x, action)
             states.append(x)
-        states = torch.stack(states, 1).to(sets.center.dtype)  # [S, H, n]
-        outside.append(points_outside(sets[p], states).sum(0))
-        spread = (states.amax(0) - states.amin(0)).clamp_min(1e-12)
-        ratios.append((2 * sets[p].generators.abs().sum(-1) / spread).log().mean(-1).exp())
+        compared = _compare(sets[p], torch.stack(states, 1))
+        outside.append(compared[0])
+        ratios.append(compared[1])
+    return SampledReach(torch.stack(outside), torch.stack(ratios), covered, samples)
+
+
+def _compare(sets: Zonotope, states: Tensor) -> tuple[Tensor, Tensor]:
+    """``(outside [H], width_ratio [H])`` of one plan's sets ``[H]`` against its sampled states ``[S, H, n]``."""
+    states = states.to(sets.center.dtype)
+    spread = (states.amax(0) - states.amin(0)).clamp_min(1e-12)
+    return points_outside(sets, states).sum(0), (2 * sets.generators.abs().sum(-1) / spread).log().mean(-1).exp()
+
+
+def env_sample_reach(reach: DataDrivenReach, env, plans: int, horizon: int, action_low: Tensor, action_high: Tensor,
+                     braking_action: Tensor, samples: int = 100, warmup: int = 6, state_key: str = "state",
+                     seed: int = 0) -> SampledReach:
+    """:func:`sample_reach` on a simulated robot: ``samples`` true trajectories along each plan from one reached state.
+
+    Plans and their starts are drawn as :func:`env_trajectories` draws them (random actions, every other plan one
+    action then the braking action, from a state ``0 .. warmup - 1`` random steps after a reset). At each start
+    the env is copied ``samples`` times, each copy's noise re-seeded (``seed`` plus the sample's index), and every
+    copy runs the plan: the trajectories differ only by the task's process noise, so their spread is what the sets
+    would ideally cover. A plan whose episode ends in any copy is dropped and another drawn.
+
+    Args:
+        reach: the fitted model.
+        env: an unbatched TorchRL env of a task of ``envs`` (typically its empty variant, with a long time limit),
+            whose task draws its noise from ``env.task.random``.
+        plans, horizon, action_low, action_high, braking_action, warmup, state_key: as :func:`env_trajectories`.
+        samples: trajectories per plan.
+        seed: of the copies' noise.
+
+    Examples:
+        >>> env = envs.make("diffdrive_nav", empty=True, robot="wheeled", episode_steps=10_000)
+        >>> result = env_sample_reach(reach, env, 20, info.n_brk + 1, info.action_low, info.action_high,
+        ...                           info.braking_action)
+        >>> result.violations, result.median_ratio
+    """
+    if not hasattr(getattr(getattr(env, "task", None), "random", None), "seed"):
+        raise TypeError(f"`env` must be a task of `envs`, whose task draws its noise from `env.task.random`; got "
+                        f"{type(env).__name__}")
+    uniform = _uniform(action_low, action_high)
+    starts, chosen, outcomes = [], [], []
+    while len(starts) < plans:
+        td = _reached_state(env, uniform, warmup)
+        plan = _random_plan(uniform, horizon, braking_action, brakes=len(starts) % 2 == 1)
+        runs = []
+        for sample in range(samples):
+            copy = deepcopy(env)
+            copy.task.random.seed(seed + sample)
+            runs.append(_run_plan(copy, td.clone(), plan, state_key))
+        if not any(done for _, done in runs):
+            starts.append(td[state_key].double())
+            chosen.append(plan)
+            outcomes.append(torch.stack([states for states, _ in runs]))  # [S, H, n]
+    x0, chosen = torch.stack(starts), torch.stack(chosen)
+    sets, covered = reach.reach_covered(Zonotope.from_point(x0), chosen)
+    outside, ratios = zip(*(_compare(sets[p], states) for p, states in enumerate(outcomes)))
     return SampledReach(torch.stack(outside), torch.stack(ratios), covered, samples)
 
 
@@ -196,31 +251,52 @@ def env_trajectories(env, plans: int, horizon: int, action_low: Tensor, action_h
         >>> sets, claimed = reach.reach_covered(Zonotope.from_point(x0), plans)
         >>> bool(sets.contains(states)[claimed].all())
     """
-    low, high = action_low.double(), action_high.double()
-
-    def uniform(*shape: int) -> Tensor:
-        return low + (high - low) * torch.rand(*shape, low.shape[-1], dtype=torch.float64)
-
+    uniform = _uniform(action_low, action_high)
     starts, chosen, visited = [], [], []
     while len(starts) < plans:
-        td = env.reset()
-        for _ in range(int(torch.randint(0, warmup, ()))):
-            td["action"] = uniform().float()
-            td = env.step_mdp(env.step(td))
-        plan = uniform(horizon)
-        if len(starts) % 2:
-            plan[1:] = braking_action.double()
-        x0, states = td[state_key].double(), []
-        for action in plan:
-            td["action"] = action.float()
-            td = env.step(td)
-            states.append(td["next", state_key].double())
-            td = env.step_mdp(td)
-        if not td["done"]:
+        td = _reached_state(env, uniform, warmup)
+        plan = _random_plan(uniform, horizon, braking_action, brakes=len(starts) % 2 == 1)
+        x0 = td[state_key].double()
+        states, done = _run_plan(env, td, plan, state_key)
+        if not done:
             starts.append(x0)
             chosen.append(plan)
-            visited.append(torch.stack(states))
+            visited.append(states)
     return torch.stack(starts), torch.stack(chosen), torch.stack(visited)
+
+
+def _uniform(action_low: Tensor, action_high: Tensor) -> Callable[..., Tensor]:
+    """``uniform(*shape) -> [*shape, m]`` float64 actions uniform in the bounds (the global torch RNG)."""
+    low, high = action_low.double(), action_high.double()
+    return lambda *shape: low + (high - low) * torch.rand(*shape, low.shape[-1], dtype=torch.float64)
+
+
+def _reached_state(env, uniform: Callable[..., Tensor], warmup: int):
+    """The TensorDict of a state ``0 .. warmup - 1`` random steps after a reset."""
+    td = env.reset()
+    for _ in range(int(torch.randint(0, warmup, ()))):
+        td["action"] = uniform().float()
+        td = env.step_mdp(env.step(td))
+    return td
+
+
+def _random_plan(uniform: Callable[..., Tensor], horizon: int, braking_action: Tensor, brakes: bool) -> Tensor:
+    """``[H, m]`` random actions, or (``brakes``) one random action then the braking action."""
+    plan = uniform(horizon)
+    if brakes:
+        plan[1:] = braking_action.double()
+    return plan
+
+
+def _run_plan(env, td, plan: Tensor, state_key: str) -> tuple[Tensor, bool]:
+    """``(states [H, n] float64, whether the episode ended)``: ``plan`` run in ``env`` from ``td``."""
+    states = []
+    for action in plan:
+        td["action"] = action.float()
+        td = env.step(td)
+        states.append(td["next", state_key].double())
+        td = env.step_mdp(td)
+    return torch.stack(states), bool(td["done"])
 
 
 def points_outside(sets: Zonotope, points: Tensor, directions: int = 64, seed: int = 0) -> Tensor:
