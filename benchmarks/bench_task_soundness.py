@@ -51,19 +51,27 @@ def worst_noise(name: str, reach: DataDrivenReach, queries: int, seed: int) -> s
     return f"{int(outside[claimed].sum())}/{int(claimed.sum())}"
 
 
+def fit_task(name: str, steps: int, seed: int, method: str = "local", **options) -> DataDrivenReach:
+    """The model of task ``name`` from ``steps`` random offline transitions of its empty variant (torch seed ``seed``),
+    in the body frame where the recipes fit it (a local model); ``options`` go to :meth:`DataDrivenReach.fit`."""
+    task, env_options, body, episode = TASKS[name]
+    info = envs.safety_info(task)
+    torch.manual_seed(seed)
+    offline = envs.make(task, empty=True, seed=11, **env_options, **({"episode_steps": episode} if episode else {}))
+    data = collect_offline_data(offline, steps)
+    frame = BodyFrame(info.position_dims, info.heading_dims) if body and method == "local" else None
+    return DataDrivenReach.from_data(data, Zonotope(info.noise_center.double(), info.noise_generators.double()),
+                                     translation_invariant_dims=info.position_dims, max_generators=30,
+                                     body_frame=frame, method=method, **options)
+
+
 def check(name: str, steps: int, plans: int, seed: int, held_out_folds: int = 0,
           queries: int = 2000) -> tuple[str, DataDrivenReach, Zonotope, torch.Tensor]:
     """One row: fit from ``steps`` offline transitions, sample ``plans`` true trajectories, count the states outside.
     Also the model, the plans' initial sets and their actions."""
-    task, options, body, episode = TASKS[name]
+    task, options, *_ = TASKS[name]
     info = envs.safety_info(task)
-    torch.manual_seed(seed)
-    offline = envs.make(task, empty=True, seed=11, **options, **({"episode_steps": episode} if episode else {}))
-    data = collect_offline_data(offline, steps)
-    reach = DataDrivenReach.from_data(data, Zonotope(info.noise_center.double(), info.noise_generators.double()),
-                                      translation_invariant_dims=info.position_dims, max_generators=30,
-                                      body_frame=BodyFrame(info.position_dims, info.heading_dims) if body else None,
-                                      held_out_folds=held_out_folds)
+    reach = fit_task(name, steps, seed, held_out_folds=held_out_folds)
     env = envs.make(task, empty=True, seed=12, episode_steps=10_000, **options)
     x0, actions, visited = env_trajectories(env, plans, info.n_brk + 1, info.action_low, info.action_high,
                                             info.braking_action)

@@ -98,7 +98,7 @@ def test_points_outside_checks_a_dim_of_zero_width_exactly_without_an_lp(monkeyp
 def test_env_sample_reach_spreads_copies_of_a_mujoco_robot_by_their_noise_alone():
     """Each plan's trajectories start from one reached state in copies of the env that differ only by their noise's
     seed: the local model's sets hold them with widths a few times their spread; without noise every copy takes the
-    same path (no spread: the ratio explodes); sets shrunk (leaves' errors and noise to 0.3) let states out."""
+    same path (no spread: no ratio); sets shrunk (leaves' errors and noise to 0.3) let states out."""
     info = envs.safety_info("point_boxes")
     torch.manual_seed(0)
     noise = Zonotope(info.noise_center.double(), info.noise_generators.double())
@@ -112,7 +112,7 @@ def test_env_sample_reach_spreads_copies_of_a_mujoco_robot_by_their_noise_alone(
     assert result.checked >= 3 * horizon * 30 and result.violations == 0
     assert 1.0 <= result.median_ratio < 10.0
     env.task.noise_scale = 0.0
-    assert env_sample_reach(reach, env, 2, horizon, *bounds, samples=5).median_ratio > 1e6
+    assert env_sample_reach(reach, env, 2, horizon, *bounds, samples=5).median_ratio == float("inf")
     env.task.noise_scale = 1.0
     errors, noise = reach.cell_errors.clone(), reach.noise_generators.clone()
     try:

@@ -19,7 +19,7 @@ class SampledReach(NamedTuple):
     Attributes:
         outside: ``[P, H]`` sampled states outside their set.
         width_ratio: ``[P, H]`` the sets' interval widths over the samples' spread (max - min),
-            geometric mean over the state dims.
+            geometric mean over the state dims the samples spread in (:data:`SPREAD_FLOOR`; ``inf`` where none).
         covered: ``[P]`` whether the model claims the plan (see :meth:`DataDrivenReach.reach_covered`).
         samples: ``S``.
     """
@@ -81,8 +81,17 @@ def sample_reach(reach: DataDrivenReach, step: Callable[[Tensor, Tensor], Tensor
 def _compare(sets: Zonotope, states: Tensor) -> tuple[Tensor, Tensor]:
     """``(outside [H], width_ratio [H])`` of one plan's sets ``[H]`` against its sampled states ``[S, H, n]``."""
     states = states.to(sets.center.dtype)
-    spread = (states.amax(0) - states.amin(0)).clamp_min(1e-12)
-    return points_outside(sets, states).sum(0), (2 * sets.generators.abs().sum(-1) / spread).log().mean(-1).exp()
+    spread = states.amax(0) - states.amin(0)
+    spreads = spread > SPREAD_FLOOR
+    logs = torch.where(spreads, (2 * sets.generators.abs().sum(-1) / spread.clamp_min(SPREAD_FLOOR)).log(), 0.0)
+    count = spreads.sum(-1)
+    ratio = torch.where(count > 0, (logs.sum(-1) / count.clamp_min(1)).exp(), torch.inf)
+    return points_outside(sets, states).sum(0), ratio
+
+
+SPREAD_FLOOR = 1e-12
+"""A dim whose samples spread less than this is left out of the width ratio's mean: e.g. a position one step after
+the start, when the noise enters through the velocities."""
 
 
 def env_sample_reach(reach: DataDrivenReach, env, plans: int, horizon: int, action_low: Tensor, action_high: Tensor,
