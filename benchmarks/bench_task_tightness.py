@@ -8,10 +8,11 @@ one action then braking, from states the robot reaches), each run by ``--samples
 only by their process noise (:func:`~torchrl_brsl.reach.env_sample_reach`). Printed per task, data size and model:
 plans claimed, the median over the claimed plans' steps of the sets' interval widths over the samples' spread
 (geometric mean over the state dims, as ``bench_reach_tightness.py``), the same after the first step and at the
-last, and the sampled states outside their claimed sets. The same plans, starts and noise for both models.
+last, and the sampled states outside their claimed sets; with ``--per-dim`` also each state dim's median ratio
+(over the claimed plans' steps where the samples spread in it). The same plans, starts and noise for both models.
 
 Usage: ``python benchmarks/bench_task_tightness.py [--plans 20] [--samples 100] [--data 500,2000]
-[--tasks quadrotor_nav,...] [--models local,global]``
+[--tasks quadrotor_nav,...] [--models local,global] [--per-dim]``
 """
 from __future__ import annotations
 
@@ -57,6 +58,7 @@ def main() -> None:
     parser.add_argument("--tasks", default=",".join(TASKS), help=f"comma-separated, of {', '.join(TASKS)}")
     parser.add_argument("--models", default=",".join(MODELS), help="comma-separated, of local, global")
     parser.add_argument("--seed", type=int, default=0, help="torch seed of the offline actions and the plans")
+    parser.add_argument("--per-dim", action="store_true", help="also each state dim's median width ratio")
     args = parser.parse_args()
     unknown = sorted(set(args.tasks.split(",")) - set(TASKS)) + sorted(set(args.models.split(",")) - set(MODELS))
     if unknown:
@@ -71,6 +73,8 @@ def main() -> None:
                 reach = fit_task(name, steps, args.seed, method=model)
                 result = sampled(name, reach, args.plans, args.samples, args.seed + 1)
                 print(f"{row(name, steps, model, result)}   {time.perf_counter() - start:.0f} s", flush=True)
+                if args.per_dim and bool(result.covered.any()):
+                    print(f"{'':<20}per dim: {', '.join(f'{v:.2f}' for v in result.median_dim_ratio.tolist())}")
 
 
 if __name__ == "__main__":

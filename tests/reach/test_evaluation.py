@@ -111,6 +111,8 @@ def test_env_sample_reach_spreads_copies_of_a_mujoco_robot_by_their_noise_alone(
     assert result.outside.shape == result.width_ratio.shape == (6, horizon) and result.samples == 30
     assert result.checked >= 3 * horizon * 30 and result.violations == 0
     assert 1.0 <= result.median_ratio < 10.0
+    velocities = result.median_dim_ratio[2:]  # the noise enters there: they spread from the first step
+    assert result.dim_ratio.shape == (6, horizon, 4) and bool(((velocities >= 1) & (velocities < 10)).all())
     env.task.noise_scale = 0.0
     assert env_sample_reach(reach, env, 2, horizon, *bounds, samples=5).median_ratio == float("inf")
     env.task.noise_scale = 1.0
@@ -124,3 +126,18 @@ def test_env_sample_reach_spreads_copies_of_a_mujoco_robot_by_their_noise_alone(
         reach.noise_generators.copy_(noise)
     with pytest.raises(TypeError, match="`env` must be a task of `envs`"):
         env_sample_reach(reach, types.SimpleNamespace(), 1, horizon, *bounds)
+
+
+def test_env_sample_reach_checks_the_plans_as_the_robot_applies_them():
+    """The env applies float32 actions; the sets are of the same values. The global model of the uncapped hexarotor
+    keeps its height and vertical offset exact (zero width: no noise there), which a float64 plan's rounding put
+    about 5e-9 outside at every sample."""
+    info = envs.safety_info("hexarotor_wind")
+    torch.manual_seed(0)
+    noise = Zonotope(info.noise_center.double(), info.noise_generators.double())
+    reach = DataDrivenReach.from_env(envs.make("hexarotor_wind", empty=True, seed=1, max_acceleration=None,
+                                               episode_steps=50), noise, steps=300, method="global",
+                                     translation_invariant_dims=info.position_dims)
+    env = envs.make("hexarotor_wind", empty=True, seed=2, episode_steps=10_000, max_acceleration=None)
+    result = env_sample_reach(reach, env, 2, 3, info.action_low, info.action_high, info.braking_action, samples=10)
+    assert result.checked == 2 * 3 * 10 and result.violations == 0

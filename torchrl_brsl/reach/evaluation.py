@@ -22,12 +22,14 @@ class SampledReach(NamedTuple):
             geometric mean over the state dims the samples spread in (:data:`SPREAD_FLOOR`; ``inf`` where none).
         covered: ``[P]`` whether the model claims the plan (see :meth:`DataDrivenReach.reach_covered`).
         samples: ``S``.
+        dim_ratio: ``[P, H, n]`` the same per state dim (``nan`` where the samples do not spread).
     """
 
     outside: Tensor
     width_ratio: Tensor
     covered: Tensor
     samples: int
+    dim_ratio: Tensor
 
     @property
     def violations(self) -> int:
@@ -44,6 +46,11 @@ class SampledReach(NamedTuple):
         """Median width ratio over the steps of the plans the model claims (``nan`` if none)."""
         ratios = self.width_ratio[self.covered]
         return float(ratios.median()) if ratios.numel() else float("nan")
+
+    @property
+    def median_dim_ratio(self) -> Tensor:
+        """``[n]`` each dim's median width ratio over the steps of the claimed plans where it spreads (``nan``: none)."""
+        return self.dim_ratio[self.covered].flatten(0, -2).nanmedian(0).values
 
 
 def sample_reach(reach: DataDrivenReach, step: Callable[[Tensor, Tensor], Tensor], x0: Tensor, plans: Tensor,
@@ -66,27 +73,31 @@ def sample_reach(reach: DataDrivenReach, step: Callable[[Tensor, Tensor], Tensor
     if x0.ndim != 2 or plans.ndim != 3 or plans.shape[0] != x0.shape[0]:
         raise ValueError(f"`x0` must be [P, n] and `plans` [P, H, m]; got {tuple(x0.shape)} and {tuple(plans.shape)}")
     sets, covered = reach.reach_covered(Zonotope.from_point(x0), plans)
-    outside, ratios = [], []
+    compared = []
     for p in range(x0.shape[0]):
         x, states = x0[p].expand(samples, -1), []
         for action in plans[p]:
             x = step(x, action)
             states.append(x)
-        compared = _compare(sets[p], torch.stack(states, 1))
-        outside.append(compared[0])
-        ratios.append(compared[1])
-    return SampledReach(torch.stack(outside), torch.stack(ratios), covered, samples)
+        compared.append(_compare(sets[p], torch.stack(states, 1)))
+    return _sampled(compared, covered, samples)
 
 
-def _compare(sets: Zonotope, states: Tensor) -> tuple[Tensor, Tensor]:
-    """``(outside [H], width_ratio [H])`` of one plan's sets ``[H]`` against its sampled states ``[S, H, n]``."""
+def _compare(sets: Zonotope, states: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """``(outside [H], width_ratio [H], dim_ratio [H, n])`` of one plan's sets ``[H]`` against its sampled states
+    ``[S, H, n]``."""
     states = states.to(sets.center.dtype)
     spread = states.amax(0) - states.amin(0)
     spreads = spread > SPREAD_FLOOR
-    logs = torch.where(spreads, (2 * sets.generators.abs().sum(-1) / spread.clamp_min(SPREAD_FLOOR)).log(), 0.0)
+    per_dim = torch.where(spreads, 2 * sets.generators.abs().sum(-1) / spread.clamp_min(SPREAD_FLOOR), torch.nan)
     count = spreads.sum(-1)
-    ratio = torch.where(count > 0, (logs.sum(-1) / count.clamp_min(1)).exp(), torch.inf)
-    return points_outside(sets, states).sum(0), ratio
+    ratio = torch.where(count > 0, (per_dim.log().nan_to_num(0.0).sum(-1) / count.clamp_min(1)).exp(), torch.inf)
+    return points_outside(sets, states).sum(0), ratio, per_dim
+
+
+def _sampled(compared: list[tuple[Tensor, Tensor, Tensor]], covered: Tensor, samples: int) -> SampledReach:
+    outside, ratios, per_dim = (torch.stack(parts) for parts in zip(*compared))
+    return SampledReach(outside, ratios, covered, samples, per_dim)
 
 
 SPREAD_FLOOR = 1e-12
@@ -138,8 +149,7 @@ def env_sample_reach(reach: DataDrivenReach, env, plans: int, horizon: int, acti
             outcomes.append(torch.stack([states for states, _ in runs]))  # [S, H, n]
     x0, chosen = torch.stack(starts), torch.stack(chosen)
     sets, covered = reach.reach_covered(Zonotope.from_point(x0), chosen)
-    outside, ratios = zip(*(_compare(sets[p], states) for p, states in enumerate(outcomes)))
-    return SampledReach(torch.stack(outside), torch.stack(ratios), covered, samples)
+    return _sampled([_compare(sets[p], states) for p, states in enumerate(outcomes)], covered, samples)
 
 
 MAX_VERTEX_GENERATORS = 12
@@ -252,7 +262,8 @@ def env_trajectories(env, plans: int, horizon: int, action_low: Tensor, action_h
         state_key: where the state is.
 
     Returns:
-        ``(x0 [P, n], plans [P, H, m], states [P, H, n])``, float64; ``states[:, j]`` follows action ``j``.
+        ``(x0 [P, n], plans [P, H, m], states [P, H, n])``, float64 (the plans' values are float32's, as the env
+        applies them); ``states[:, j]`` follows action ``j``.
 
     Examples:
         >>> x0, plans, states = env_trajectories(envs.make("point_boxes", empty=True, episode_steps=10_000), 40, 11,
@@ -290,11 +301,12 @@ def _reached_state(env, uniform: Callable[..., Tensor], warmup: int):
 
 
 def _random_plan(uniform: Callable[..., Tensor], horizon: int, braking_action: Tensor, brakes: bool) -> Tensor:
-    """``[H, m]`` random actions, or (``brakes``) one random action then the braking action."""
+    """``[H, m]`` random actions, or (``brakes``) one random action then the braking action, as the env applies them
+    (float32 values, in float64): a set of the unrounded plan misses the robot's exact dims by the rounding."""
     plan = uniform(horizon)
     if brakes:
         plan[1:] = braking_action.double()
-    return plan
+    return plan.float().double()
 
 
 def _run_plan(env, td, plan: Tensor, state_key: str) -> tuple[Tensor, bool]:
