@@ -81,7 +81,7 @@ def quick_tracing(function: Callable) -> Callable:
     With the graphs' sizes symbolic, each cache entry is checked by building the operation's output a second time,
     symbolically, and the loops' operations rarely repeat with the same arguments, so the cache cost more than it
     saved: compiling the Turtlebot's body-frame model and appending its layer (its checks and the facet QP, inductor's
-    cache warm) took 24-25 s without it against 36-39 s with it, one CPU core. The graphs are the same (the cache only
+    cache warm) took 26-28 s without it against 37-40 s with it, one CPU core. The graphs are the same (the cache only
     memoises the tracing's fake outputs); a graph that compiles later, outside a warm-up, traces with dynamo's default.
 
     Examples:

@@ -50,7 +50,8 @@ class SampledReach(NamedTuple):
     @property
     def median_dim_ratio(self) -> Tensor:
         """``[n]`` each dim's median width ratio over the steps of the claimed plans where it spreads (``nan``: none)."""
-        return self.dim_ratio[self.covered].flatten(0, -2).nanmedian(0).values
+        ratios = self.dim_ratio[self.covered].flatten(0, -2)
+        return ratios.nanmedian(0).values if ratios.numel() else ratios.new_full(ratios.shape[-1:], torch.nan)
 
 
 def sample_reach(reach: DataDrivenReach, step: Callable[[Tensor, Tensor], Tensor], x0: Tensor, plans: Tensor,
@@ -96,6 +97,7 @@ def _compare(sets: Zonotope, states: Tensor) -> tuple[Tensor, Tensor, Tensor]:
 
 
 def _sampled(compared: list[tuple[Tensor, Tensor, Tensor]], covered: Tensor, samples: int) -> SampledReach:
+    """The plans' :func:`_compare` results, stacked."""
     outside, ratios, per_dim = (torch.stack(parts) for parts in zip(*compared))
     return SampledReach(outside, ratios, covered, samples, per_dim)
 
@@ -112,9 +114,10 @@ def env_sample_reach(reach: DataDrivenReach, env, plans: int, horizon: int, acti
 
     Plans and their starts are drawn as :func:`env_trajectories` draws them (random actions, every other plan one
     action then the braking action, from a state ``0 .. warmup - 1`` random steps after a reset). At each start
-    the env is copied ``samples`` times, each copy's noise re-seeded (``seed`` plus the sample's index), and every
-    copy runs the plan: the trajectories differ only by the task's process noise, so their spread is what the sets
-    would ideally cover. A plan whose episode ends in any copy is dropped and another drawn.
+    the env is copied ``samples`` times, each copy's noise re-seeded (``seed`` plus the sample's index, the same
+    seeds for every plan), and every copy runs the plan: the trajectories differ only by the task's process noise,
+    so their spread is what the sets would ideally cover. A plan whose episode ends in any copy is dropped and
+    another drawn.
 
     Args:
         reach: the fitted model.
