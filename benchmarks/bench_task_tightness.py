@@ -10,9 +10,11 @@ plans claimed, the median over the claimed plans' steps of the sets' interval wi
 (geometric mean over the state dims, as ``bench_reach_tightness.py``), the same after the first step and at the
 last, and the sampled states outside their claimed sets; with ``--per-dim`` also each state dim's median ratio
 (over the claimed plans' steps where the samples spread in it). The same plans, starts and noise for both models.
+``--noise vertices`` holds each copy's noise at a random vertex of ``W`` for the whole plan, a constant worst case:
+the ratio then compares the sets with (nearly) the true reachable set's extent instead of typical noise's spread.
 
 Usage: ``python benchmarks/bench_task_tightness.py [--plans 20] [--samples 100] [--data 500,2000]
-[--tasks quadrotor_nav,...] [--models local,global] [--per-dim]``
+[--tasks quadrotor_nav,...] [--models local,global] [--per-dim] [--noise vertices]``
 """
 from __future__ import annotations
 
@@ -28,14 +30,14 @@ from torchrl_brsl.reach import SampledReach, env_sample_reach
 MODELS = ("local", "global")
 
 
-def sampled(name: str, reach, plans: int, samples: int, seed: int) -> SampledReach:
+def sampled(name: str, reach, plans: int, samples: int, seed: int, noise: str = "uniform") -> SampledReach:
     """The task's plans (the same for every model: torch seed ``seed``, env seed 12) run by ``samples`` copies."""
     task, options, *_ = TASKS[name]
     info = envs.safety_info(task)
     env = envs.make(task, empty=True, seed=12, episode_steps=10_000, **options)
     torch.manual_seed(seed)
     return env_sample_reach(reach, env, plans, info.n_brk + 1, info.action_low, info.action_high,
-                            info.braking_action, samples=samples)
+                            info.braking_action, samples=samples, noise=noise)
 
 
 def row(name: str, steps: int, model: str, result: SampledReach) -> str:
@@ -59,6 +61,9 @@ def main() -> None:
     parser.add_argument("--models", default=",".join(MODELS), help="comma-separated, of local, global")
     parser.add_argument("--seed", type=int, default=0, help="torch seed of the offline actions and the plans")
     parser.add_argument("--per-dim", action="store_true", help="also each state dim's median width ratio")
+    parser.add_argument("--noise", choices=("uniform", "vertices"), default="uniform",
+                        help="the copies' noise: the task's, or each copy's at a random vertex of W throughout "
+                             "(the spread then approaches the reachable set's extent)")
     args = parser.parse_args()
     unknown = sorted(set(args.tasks.split(",")) - set(TASKS)) + sorted(set(args.models.split(",")) - set(MODELS))
     if unknown:
@@ -71,7 +76,7 @@ def main() -> None:
             for model in args.models.split(","):
                 start = time.perf_counter()
                 reach = fit_task(name, steps, args.seed, method=model)
-                result = sampled(name, reach, args.plans, args.samples, args.seed + 1)
+                result = sampled(name, reach, args.plans, args.samples, args.seed + 1, args.noise)
                 print(f"{row(name, steps, model, result)}   {time.perf_counter() - start:.0f} s", flush=True)
                 if args.per_dim and bool(result.covered.any()):
                     print(f"{'':<20}per dim: {', '.join(f'{v:.2f}' for v in result.median_dim_ratio.tolist())}")

@@ -44,6 +44,9 @@ class SafetyTask(base.Task):
 
     Attributes:
         noise_scale: multiplies the process noise; 0 gives noiseless replays (tests).
+        noise_signs: ``None`` (each step's noise drawn uniformly in ``W``) or ``[p]`` signs of the noise
+            generators: every step's noise at that vertex of ``W``, a constant worst case that reaches the edges of
+            the reachable sets, which uniform noise seldom does (``torchrl_brsl.reach.env_sample_reach``).
         last_noise: ``[n]`` the noise added to the state by the last step (zeros without noise), so that
             ``next state - last_noise`` is the noiseless successor (checks of a model at the noise's worst,
             ``benchmarks/bench_task_soundness.py``).
@@ -84,6 +87,7 @@ class SafetyTask(base.Task):
         self.layout_index = layout
         self.terminate_on_collision = bool(terminate_on_collision)
         self.noise_scale = 1.0
+        self.noise_signs: np.ndarray | None = None
         self.last_noise = np.zeros(len(self.noise_center))
         self.layout: Layout | None = None
         self._slots: ObstacleSlots | None = None
@@ -188,7 +192,8 @@ class SafetyTask(base.Task):
     def after_step(self, physics):
         self.last_noise = np.zeros(len(self.noise_center))
         if self.noise_scale:
-            z = self.random.uniform(-1.0, 1.0, self.noise_generators.shape[1])
+            z = self.noise_signs if self.noise_signs is not None else self.random.uniform(
+                -1.0, 1.0, self.noise_generators.shape[1])
             self.last_noise = self.noise_scale * (self.noise_center + self.noise_generators @ z)
             self._add_state_noise(physics, self.last_noise)
             mujoco.mj_fwdVelocity(physics.model.ptr, physics.data.ptr)

@@ -98,21 +98,31 @@ def test_points_outside_checks_a_dim_of_zero_width_exactly_without_an_lp(monkeyp
 def test_env_sample_reach_spreads_copies_of_a_mujoco_robot_by_their_noise_alone():
     """Each plan's trajectories start from one reached state in copies of the env that differ only by their noise's
     seed: the local model's sets hold them with widths a few times their spread; without noise every copy takes the
-    same path (no spread: no ratio); sets shrunk (leaves' errors and noise to 0.3) let states out."""
+    same path (no spread: no ratio); with the noise at a vertex of ``W`` throughout, the first step's samples spread
+    over all of ``W``; sets shrunk (leaves' errors and noise to 0.3) let states out."""
     info = envs.safety_info("point_boxes")
     torch.manual_seed(0)
     noise = Zonotope(info.noise_center.double(), info.noise_generators.double())
     reach = DataDrivenReach.from_env(envs.make("point_boxes", empty=True, seed=1), noise, steps=500,
                                      translation_invariant_dims=info.position_dims, max_generators=30)
-    env = envs.make("point_boxes", empty=True, seed=2, episode_steps=10_000)
     bounds = (info.action_low, info.action_high, info.braking_action)
     horizon = info.n_brk + 1
-    result = env_sample_reach(reach, env, 6, horizon, *bounds, samples=30)
+
+    def run(noise="uniform"):  # the same starts and plans for every call
+        torch.manual_seed(1)
+        env = envs.make("point_boxes", empty=True, seed=2, episode_steps=10_000)
+        return env, env_sample_reach(reach, env, 6, horizon, *bounds, samples=30, noise=noise)
+
+    env, result = run()
     assert result.outside.shape == result.width_ratio.shape == (6, horizon) and result.samples == 30
     assert result.checked >= 3 * horizon * 30 and result.violations == 0
     assert 1.0 <= result.median_ratio < 10.0
     velocities = result.median_dim_ratio[2:]  # the noise enters there: they spread from the first step
     assert result.dim_ratio.shape == (6, horizon, 4) and bool(((velocities >= 1) & (velocities < 10)).all())
+    vertices = run("vertices")[1]  # each copy's noise at a vertex of W: the first step spreads over all of W
+    claimed = result.covered & vertices.covered
+    assert vertices.violations == 0 and bool(claimed.any())
+    assert bool((vertices.dim_ratio[claimed, 0, 2:] < result.dim_ratio[claimed, 0, 2:]).all())
     env.task.noise_scale = 0.0
     assert env_sample_reach(reach, env, 2, horizon, *bounds, samples=5).median_ratio == float("inf")
     env.task.noise_scale = 1.0
@@ -126,6 +136,8 @@ def test_env_sample_reach_spreads_copies_of_a_mujoco_robot_by_their_noise_alone(
         reach.noise_generators.copy_(noise)
     with pytest.raises(TypeError, match="`env` must be a task of `envs`"):
         env_sample_reach(reach, types.SimpleNamespace(), 1, horizon, *bounds)
+    with pytest.raises(ValueError, match="`noise` must be"):
+        env_sample_reach(reach, env, 1, horizon, *bounds, noise="gaussian")
 
 
 def test_env_sample_reach_checks_the_plans_as_the_robot_applies_them():

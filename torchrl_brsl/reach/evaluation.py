@@ -109,7 +109,7 @@ the start, when the noise enters through the velocities."""
 
 def env_sample_reach(reach: DataDrivenReach, env, plans: int, horizon: int, action_low: Tensor, action_high: Tensor,
                      braking_action: Tensor, samples: int = 100, warmup: int = 6, state_key: str = "state",
-                     seed: int = 0) -> SampledReach:
+                     seed: int = 0, noise: str = "uniform") -> SampledReach:
     """:func:`sample_reach` on a simulated robot: ``samples`` true trajectories along each plan from one reached state.
 
     Plans and their starts are drawn as :func:`env_trajectories` draws them (random actions, every other plan one
@@ -117,7 +117,10 @@ def env_sample_reach(reach: DataDrivenReach, env, plans: int, horizon: int, acti
     the env is copied ``samples`` times, each copy's noise re-seeded (``seed`` plus the sample's index, the same
     seeds for every plan), and every copy runs the plan: the trajectories differ only by the task's process noise,
     so their spread is what the sets would ideally cover. A plan whose episode ends in any copy is dropped and
-    another drawn.
+    another drawn. Uniform noise seldom reaches the sets' edges (a sample's spread grows like the square root of the
+    steps, the worst case linearly): with ``noise="vertices"`` each copy's noise stays at one random vertex of ``W``
+    for the whole plan, a constant worst case whose spread approaches the reachable set's extent, so the width ratio
+    says how far the sets are from the true reachable sets rather than from typical noise.
 
     Args:
         reach: the fitted model.
@@ -126,6 +129,8 @@ def env_sample_reach(reach: DataDrivenReach, env, plans: int, horizon: int, acti
         plans, horizon, action_low, action_high, braking_action, warmup, state_key: as :func:`env_trajectories`.
         samples: trajectories per plan.
         seed: of the copies' noise.
+        noise: ``"uniform"`` (the task's noise) or ``"vertices"`` (each copy's at a random vertex of ``W`` throughout,
+            the task's ``noise_signs``).
 
     Examples:
         >>> env = envs.make("diffdrive_nav", empty=True, robot="wheeled", episode_steps=10_000)
@@ -136,6 +141,8 @@ def env_sample_reach(reach: DataDrivenReach, env, plans: int, horizon: int, acti
     if not hasattr(getattr(getattr(env, "task", None), "random", None), "seed"):
         raise TypeError(f"`env` must be a task of `envs`, whose task draws its noise from `env.task.random`; got "
                         f"{type(env).__name__}")
+    if noise not in ("uniform", "vertices"):
+        raise ValueError(f"`noise` must be 'uniform' or 'vertices', got {noise!r}")
     uniform = _uniform(action_low, action_high)
     starts, chosen, outcomes = [], [], []
     while len(starts) < plans:
@@ -145,6 +152,8 @@ def env_sample_reach(reach: DataDrivenReach, env, plans: int, horizon: int, acti
         for sample in range(samples):
             copy = deepcopy(env)
             copy.task.random.seed(seed + sample)
+            if noise == "vertices":
+                copy.task.noise_signs = copy.task.random.choice([-1.0, 1.0], copy.task.noise_generators.shape[1])
             runs.append(_run_plan(copy, td.clone(), plan, state_key))
         if not any(done for _, done in runs):
             starts.append(td[state_key].double())
