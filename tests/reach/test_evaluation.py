@@ -108,10 +108,10 @@ def test_env_sample_reach_spreads_copies_of_a_mujoco_robot_by_their_noise_alone(
     bounds = (info.action_low, info.action_high, info.braking_action)
     horizon = info.n_brk + 1
 
-    def run(noise="uniform"):  # the same starts and plans for every call
+    def run(kind="uniform"):  # the same starts and plans for every call
         torch.manual_seed(1)
         env = envs.make("point_boxes", empty=True, seed=2, episode_steps=10_000)
-        return env, env_sample_reach(reach, env, 6, horizon, *bounds, samples=30, noise=noise)
+        return env, env_sample_reach(reach, env, 6, horizon, *bounds, samples=30, noise=kind)
 
     env, result = run()
     assert result.outside.shape == result.width_ratio.shape == (6, horizon) and result.samples == 30
@@ -126,14 +126,14 @@ def test_env_sample_reach_spreads_copies_of_a_mujoco_robot_by_their_noise_alone(
     env.task.noise_scale = 0.0
     assert env_sample_reach(reach, env, 2, horizon, *bounds, samples=5).median_ratio == float("inf")
     env.task.noise_scale = 1.0
-    errors, noise = reach.cell_errors.clone(), reach.noise_generators.clone()
+    errors, widths = reach.cell_errors.clone(), reach.noise_generators.clone()
     try:
         reach.cell_errors.mul_(0.3)
         reach.noise_generators.mul_(0.3)
         assert env_sample_reach(reach, env, 6, horizon, *bounds, samples=30).violations > 0
     finally:
         reach.cell_errors.copy_(errors)
-        reach.noise_generators.copy_(noise)
+        reach.noise_generators.copy_(widths)
     with pytest.raises(TypeError, match="`env` must be a task of `envs`"):
         env_sample_reach(reach, types.SimpleNamespace(), 1, horizon, *bounds)
     with pytest.raises(ValueError, match="`noise` must be"):
