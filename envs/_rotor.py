@@ -338,13 +338,13 @@ class RotorTask:
 
     def _bind(self, physics) -> None:
         super()._bind(physics)
-        self._data = physics.data.ptr
-        self._controller = CascadeController(self.airframe, self._data, self.integral_gain, self.drag_feedforward)
+        self._controller = CascadeController(self.airframe, physics.data.ptr, self.integral_gain,
+                                             self.drag_feedforward)
         physics.onboard = self._onboard
 
     def rebind(self, physics) -> None:
         """The onboard controller flies ``physics`` (a copy's), its memory (command, offset) kept."""
-        self._data = self._controller.data = physics.data.ptr
+        self._controller.data = physics.data.ptr
         physics.onboard = self._onboard
 
     def _onboard(self) -> None:

@@ -204,7 +204,7 @@ class RotorHexarotorWind(RotorTask, HexarotorWind):
         self._wind = [float(w) for w in self.wind[:2]]
 
     def _onboard(self) -> None:
-        data = self._data
+        data = self._controller.data
         vx, vy, vz = data.qvel[:3].tolist()
         data.xfrc_applied[self._body, :3] = [DRAG * (self._wind[0] - vx), DRAG * (self._wind[1] - vy), -DRAG * vz]
         self._controller.update()

@@ -526,12 +526,13 @@ def _paired_ahead(centers: Tensor, generators: Tensor, covered: Tensor, obstacle
     action ``[m]`` or its traceable policy, and the model's :class:`~torchrl_brsl.reach.local_step.LocalStep`.
     """
     checked = _checked_sets(centers, generators, covered, obstacle_centers, obstacle_generators, mask, *check)
+    _, _, _, stop_room, _, _, _, picked, weights, _ = checked
     position_dims, stop_dims, margin, rows_kept, iterations, polish, *box = program
     count, hold, policy, local = tail
     n_envs, (plan_steps, m) = plans.shape[0] // 2, plans.shape[1:]
     reference, moved = plans[n_envs:], directions[n_envs:]  # the references' half
-    room = checked[3][n_envs:] * (1 - 1e-9)  # not exactly on the boundary, where rounding decides
-    step, too_many = _locked_step(checked[7][n_envs:], checked[8][n_envs:], moved[:, :, position_dims], mask[:n_envs],
+    room = stop_room[n_envs:] * (1 - 1e-9)  # not exactly on the boundary, where rounding decides
+    step, too_many = _locked_step(picked[n_envs:], weights[n_envs:], moved[:, :, position_dims], mask[:n_envs],
                                   moved[:, -1, stop_dims], centers[n_envs:, -1, stop_dims], room, reference,
                                   plans[:n_envs], *box, margin, rows_kept, iterations, polish)
     halving = 2.0 ** -torch.arange(count, dtype=step.dtype, device=step.device)
