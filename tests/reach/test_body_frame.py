@@ -205,7 +205,7 @@ def _bicycle_states_outside(monkeypatch, floor: bool) -> int:
     # every output on all its inputs: the heading step fitted on speed and steering alone does not need the floor here
     monkeypatch.setattr(cells, "select_inputs", lambda inputs, target: torch.ones(inputs.shape[1], dtype=torch.bool))
     # nor the bend term: the grid's hinges cut the heading's bend into pieces, whose stray it covers too
-    monkeypatch.setattr(cells, "bend_error", lambda low, high, features: low.new_zeros(low.shape[0]))
+    monkeypatch.setattr(cells, "bend_error", lambda low, high, features, points=None: low.new_zeros(low.shape[0]))
     if not floor:
         monkeypatch.setattr(cells, "curvature_floor", lambda low, high, slopes, weights: slopes.new_zeros(len(low)))
     system = KinematicBicycle()

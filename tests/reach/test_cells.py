@@ -58,7 +58,7 @@ def free_hinges(monkeypatch):
     monkeypatch.setattr(hinges, "SPARSE_SHARE", 0.0)
     without_end_span(monkeypatch)
     without_range_error(monkeypatch)
-    monkeypatch.setattr(cells, "bend_error", lambda low, high, features: low.new_zeros(low.shape[0]))
+    monkeypatch.setattr(cells, "bend_error", lambda low, high, features, points=None: low.new_zeros(low.shape[0]))
 
 
 def test_starts_near_the_data_edges_are_sound_with_sparse_hinges(monkeypatch):
@@ -132,8 +132,10 @@ def test_a_noise_free_output_keeps_a_resolution_for_its_misplaced_kinks(monkeypa
     """The capped servo's positions have no noise, and its 2,000-step model finds their kinks (``u - v = 0.5``) to
     about a millionth: between the fitted and the true kink no data point shows the model's miss. With the bound's
     noise radius floored at :data:`~torchrl_brsl.reach.cells.RESOLUTION` of the output's range, no one-step query
-    along the kink leaves its set at the worst noise; without the floor, 174 of 5,000 did (measured), 1e-8 m beyond
-    position bounds of about that size."""
+    along the kink leaves its set at the worst noise; without the floor, 174 of 5,000 did (measured, 8 hinges), 1e-8 m
+    beyond position bounds of about that size. With the 12 hinges now allowed the position gets 6, and 2 leave
+    without the floor; the bend term that their same-sign pairs add (:func:`~torchrl_brsl.reach.cells.bend_error`)
+    covers those, so the teeth take it off too."""
     system = CappedVelocityServo()
     gen = torch.Generator().manual_seed(1)
     states = system.sample_states(5000, gen) * 0.7
@@ -147,6 +149,7 @@ def test_a_noise_free_output_keeps_a_resolution_for_its_misplaced_kinks(monkeypa
 
     assert leaks() == 0
     monkeypatch.setattr(cells, "RESOLUTION", 0.0)
+    monkeypatch.setattr(cells, "bend_error", lambda low, high, features, points=None: low.new_zeros(low.shape[0]))
     assert leaks() > 0, "without the floor, the sampling should catch the misplaced kink"
 
 
@@ -328,7 +331,7 @@ def test_the_one_step_claim_holds_at_the_worst_noise_thanks_to_the_bend_term(mon
         return int(worst[claimed].sum())
 
     assert outside(shared_fit(system, 500)) == 0
-    monkeypatch.setattr(cells, "bend_error", lambda low, high, features: low.new_zeros(low.shape[0]))
+    monkeypatch.setattr(cells, "bend_error", lambda low, high, features, points=None: low.new_zeros(low.shape[0]))
     assert outside(fit(system, 500)) > 0, "the worst-noise check should catch the bound without the bend term"
 
 
@@ -353,6 +356,28 @@ def test_the_bend_term_covers_the_slabs_between_same_sign_parallel_knots_only():
     servo = cells.bend_error(low, high, features([[1.0, 0.0], [1.0, 0.0]], [0.0, 0.4], [0.3, -0.3]))
     lone = cells.bend_error(low, high, features([[1.0, 0.0]], [0.0], [0.3]))
     assert not servo.any() and not lone.any()
+
+
+def test_the_bend_term_shrinks_to_what_dense_data_leave_unseen():
+    """With a leaf's data ``g`` apart along the hinges, a bend strays from them by at most ``κ g² / 8 + J g / 4``
+    (``J`` the knots' slope change); the leaf takes that where it is below ``κ s² / 8``, and the knots' spacing
+    where the data leave a wider gap (or none lie there)."""
+    t = torch.float64
+    hinges = Features(torch.tensor([[1.0, 0.0]] * 3, dtype=t), torch.tensor([0.0, 0.1, 0.4], dtype=t),
+                      torch.zeros(0, 2, 2, dtype=t), torch.zeros(0, 2, dtype=t), torch.tensor([0.3] * 3, dtype=t))
+    low = torch.tensor([[0.05, 0.0], [0.25, 0.0]], dtype=t)  # leaf 0 meets both slabs, leaf 1 the second only
+    high = torch.tensor([[0.2, 1.0], [0.35, 1.0]], dtype=t)
+    spacing = cells.bend_error(low, high, hinges)
+    torch.testing.assert_close(spacing, torch.tensor([1.5 * 0.3 ** 2 / 8] * 2, dtype=t))  # as in the test above
+    dense = torch.stack((torch.linspace(-1.0, 1.0, 201, dtype=t), torch.full((201,), 0.5, dtype=t)), dim=1)
+    by_data = cells.bend_error(low, high, hinges, [dense, dense])
+    g = 0.01  # the slab 0..0.1 has κ = 3 (the narrow spacings), 0.1..0.4 κ = 1.5; J = 0.3 at every knot
+    expected = [3.0 * g ** 2 / 8 + 0.3 * g / 4, 1.5 * g ** 2 / 8 + 0.3 * g / 4]
+    torch.testing.assert_close(by_data, torch.tensor(expected, dtype=t))
+    sparse = dense[::40]  # 0.4 apart: the gap meeting the slab is wider than the slab
+    torch.testing.assert_close(cells.bend_error(low, high, hinges, [sparse, dense[:0]]), spacing)
+    lone = Features(hinges.hinge_directions[:1], hinges.hinge_knots[:1], *hinges[2:4], hinges.coefficients[:1])
+    assert not cells.bend_error(low, high, lone, [dense, dense[:0]]).any()  # no bend, and no NaN from the empty leaf
 
 
 def test_point_bounds_are_the_one_step_sets_of_a_point():

@@ -149,7 +149,7 @@ def test_hinge_selection_past_the_noise_variance_fits_the_quadrotors_bend(monkey
     _, claimed, inside = sampled("quadrotor_nav", {}, 500, horizon, 400, seed=2)
     assert claimed.float().mean() >= 0.9 and inside.all(), f"{int((~inside).sum())} outside"
     monkeypatch.setattr(hinges, "STOP_SHARE", 1.0)
-    monkeypatch.setattr(cells, "bend_error", lambda low, high, features: low.new_zeros(low.shape[0]))
+    monkeypatch.setattr(cells, "bend_error", lambda low, high, features, points=None: low.new_zeros(low.shape[0]))
     _, claimed, inside = sampled("quadrotor_nav", {}, 500, horizon, 400, seed=2)
     assert not inside.all(), "the sampling should catch the bend the early stop leaves"
 
