@@ -363,20 +363,20 @@ def test_the_bend_term_shrinks_to_what_dense_data_leave_unseen():
     (``J`` the knots' slope change); the leaf takes that where it is below ``κ s² / 8``, and the knots' spacing
     where the data leave a wider gap (or none lie there)."""
     t = torch.float64
-    hinges = Features(torch.tensor([[1.0, 0.0]] * 3, dtype=t), torch.tensor([0.0, 0.1, 0.4], dtype=t),
+    chain = Features(torch.tensor([[1.0, 0.0]] * 3, dtype=t), torch.tensor([0.0, 0.1, 0.4], dtype=t),
                       torch.zeros(0, 2, 2, dtype=t), torch.zeros(0, 2, dtype=t), torch.tensor([0.3] * 3, dtype=t))
     low = torch.tensor([[0.05, 0.0], [0.25, 0.0]], dtype=t)  # leaf 0 meets both slabs, leaf 1 the second only
     high = torch.tensor([[0.2, 1.0], [0.35, 1.0]], dtype=t)
-    spacing = cells.bend_error(low, high, hinges)
+    spacing = cells.bend_error(low, high, chain)
     torch.testing.assert_close(spacing, torch.tensor([1.5 * 0.3 ** 2 / 8] * 2, dtype=t))  # as in the test above
     dense = torch.stack((torch.linspace(-1.0, 1.0, 201, dtype=t), torch.full((201,), 0.5, dtype=t)), dim=1)
-    by_data = cells.bend_error(low, high, hinges, [dense, dense])
+    by_data = cells.bend_error(low, high, chain, [dense, dense])
     g = 0.01  # the slab 0..0.1 has κ = 3 (the narrow spacings), 0.1..0.4 κ = 1.5; J = 0.3 at every knot
     expected = [3.0 * g ** 2 / 8 + 0.3 * g / 4, 1.5 * g ** 2 / 8 + 0.3 * g / 4]
     torch.testing.assert_close(by_data, torch.tensor(expected, dtype=t))
     sparse = dense[::40]  # 0.4 apart: the gap meeting the slab is wider than the slab
-    torch.testing.assert_close(cells.bend_error(low, high, hinges, [sparse, dense[:0]]), spacing)
-    lone = Features(hinges.hinge_directions[:1], hinges.hinge_knots[:1], *hinges[2:4], hinges.coefficients[:1])
+    torch.testing.assert_close(cells.bend_error(low, high, chain, [sparse, dense[:0]]), spacing)
+    lone = Features(chain.hinge_directions[:1], chain.hinge_knots[:1], *chain[2:4], chain.coefficients[:1])
     assert not cells.bend_error(low, high, lone, [dense, dense[:0]]).any()  # no bend, and no NaN from the empty leaf
 
 

@@ -696,8 +696,9 @@ def bend_error(z_low: Tensor, z_high: Tensor, features: Features, points: list[T
     ``κ`` strays from them by at most ``κ g² / 8``, and a knot between them (where the model kinks by ``J``
     and a smooth output does not) by at most ``J g / 4`` more. The leaf takes the smaller of the two
     bounds, ``g`` the widest gap between its points (the slab's ends included) that the slab's part in the
-    leaf meets. A capped servo's position (noise-free, its step exactly piecewise linear: ten kinks over the
-    substeps) is fitted to 3e-5 m by its ten hinges, and ``κ s² / 8`` alone put 3.5e-4 m on every leaf.
+    leaf meets. The capped quadrotor's position step (noise-free, exactly piecewise linear: ten kinks over the
+    servo's substeps) is fitted to 3e-5 m by ten hinges from 500 steps, and ``κ s² / 8`` alone put 3.5e-4 m on every
+    leaf.
 
     Args:
         z_low, z_high: ``[M, d]`` the leaves' boxes along the inputs.
