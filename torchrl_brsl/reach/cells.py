@@ -697,8 +697,9 @@ def bend_error(z_low: Tensor, z_high: Tensor, features: Features, points: list[T
     and a smooth output does not) by at most ``J g / 4`` more. The leaf takes the smaller of the two
     bounds, ``g`` the widest gap between its points (the slab's ends included) that the slab's part in the
     leaf meets. The capped quadrotor's position step (noise-free, exactly piecewise linear: ten kinks over the
-    servo's substeps) is fitted to 3e-5 m by ten hinges from 500 steps, and ``κ s² / 8`` alone put 3.5e-4 m on every
-    leaf.
+    servo's substeps) is fitted to 3e-5 m by ten hinges from 500 steps, where ``κ s² / 8`` puts 3.5e-4 m on every
+    leaf; random data are seldom dense enough for the gaps to take much off it (2,000 steps: the quadrotor's sets
+    5.57 -> 5.53 times their sampled spread, ``point_boxes`` 3.80 -> 3.72).
 
     Args:
         z_low, z_high: ``[M, d]`` the leaves' boxes along the inputs.
