@@ -97,7 +97,7 @@ class Features(NamedTuple):
 
 
 def fit_features(features: Tensor, directions: Tensor, inputs: Tensor, target: Tensor, noise_radius: Tensor,
-                 max_features: int = MAX_HINGES, n_actions: int = 0) -> Features:
+                 max_features: int | None = None, n_actions: int = 0) -> Features:
     """Hinges (and products) of one output by greedy forward selection, the hinges' directions and knots refined.
 
     Each step adds the candidate that most reduces the squared residual of the least-squares
@@ -127,9 +127,11 @@ def fit_features(features: Tensor, directions: Tensor, inputs: Tensor, target: T
         inputs: ``[N, d]`` scaled regressors.
         target: ``[N]`` the output.
         noise_radius: the output's noise radius ``w̄`` (uniform noise has variance ``w̄² / 3``).
+        max_features: the most features (``None``: :data:`MAX_HINGES`).
         n_actions: the action columns of ``inputs`` (0: no products).
     """
     n_points, d = inputs.shape
+    max_features = MAX_HINGES if max_features is None else max_features
     quantiles = torch.linspace(0.03, 0.97, KNOTS, dtype=features.dtype)
     knots = torch.quantile(features, quantiles, dim=0).T  # [f, K]
     grid = (features.unsqueeze(-1) - knots).clamp_min(0).flatten(1)  # [N, f K]
@@ -324,7 +326,7 @@ def _gains(regressors: Tensor, candidates: Tensor, target: Tensor) -> tuple[Tens
 
 
 def fit_hinges(features: Tensor, directions: Tensor, inputs: Tensor, target: Tensor, noise_radius: Tensor,
-               max_hinges: int = MAX_HINGES) -> tuple[Tensor, Tensor, Tensor]:
+               max_hinges: int | None = None) -> tuple[Tensor, Tensor, Tensor]:
     """Hinges only (:func:`fit_features` without products): ``(directions [H, d], knots [H], coefficients [H])``."""
     fitted = fit_features(features, directions, inputs, target, noise_radius, max_hinges)
     return fitted.hinge_directions, fitted.hinge_knots, fitted.coefficients
