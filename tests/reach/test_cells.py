@@ -245,6 +245,27 @@ def test_points_the_metric_cannot_tell_apart_but_whose_outputs_differ_get_no_bou
     assert math.isfinite(seeing[0]) and math.isfinite(seeing[2])
 
 
+def test_a_candidate_whose_probe_error_is_nan_never_ranks_first():
+    """A NaN leaf error (a lone hinge's empty leaf in a draft) makes a candidate's probe error ``inf``: ``min`` over the
+    candidates would otherwise keep a NaN that comes first, as it did for a capped servo's position."""
+    torch.manual_seed(0)
+    z = torch.rand(300, 3, dtype=torch.float64)
+    target = z[:, 0] + (z[:, 1] - z[:, 2]).clamp_min(0.2)
+    n_states, noise = 2, torch.tensor(0.01, dtype=torch.float64)
+    directions = cells.split_directions(n_states, 1, dtype=torch.float64)
+    kinks = [cells.split_directions(n_states, 1, None, torch.float64, r) for r in (cells.HINGE_RATIOS[:1],
+                                                                                  cells.HINGE_RATIOS)]
+    axes = torch.zeros(directions.shape[0], dtype=torch.bool)
+    axes[:3] = True
+    candidates = cells._output_candidates(z, target, noise, 1, torch.ones(3, dtype=torch.bool),
+                                          (directions, z @ directions.T, kinks, axes), (40, 0.15, 0.25, 1.0), True)
+    parts, weights, option = candidates[0]
+    assert math.isfinite(cells._probe_error(parts, weights, option, z, directions, n_states))
+    parts = [part.clone() for part in parts]
+    parts[4][0] = torch.nan  # one leaf's error
+    assert cells._probe_error(parts, weights, option, z, directions, n_states) == math.inf
+
+
 def test_the_leaves_slope_reach_covers_the_bicycles_heading_at_full_steer_and_speed(monkeypatch):
     """The bicycle's heading step ``v tan(steer)`` bends fastest at full steer and speed, where its 500-step model
     (body frame, data seed 0) holds one leaf of 63 points whose pairs show a residual slope of 0.017 only: the
