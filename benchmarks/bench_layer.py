@@ -13,8 +13,10 @@ frame (``body``) and the global fit; with ``--compile`` also the local models wi
 
 The layer's own time is its ``compute_time`` diagnostic (read, check, adjust, write). Beside each
 layer row, the shares of its timed steps that the layer adjusted and verified, that fell back to the
-failsafe or to ``unverified_hold``, and whose proposal was ``out_of_data``: an adjusting row whose steps
-all end in the failsafe times the adjuster's budget, not its speed. ``--data`` sets the offline steps (the recipes fit
+failsafe or to ``unverified_hold``, whose proposal was ``out_of_data``, and at which the robot stood at rest
+(speed under 0.01 m/s): an adjusting row whose steps all end in the failsafe times the adjuster's budget, not its
+speed, and one whose robot has stopped at the wall times the steps that keep it there (a robot that cannot reverse,
+stopped a few mm nearer the wall, falls back wherever its stopped sets reach the wall). ``--data`` sets the offline steps (the recipes fit
 the Turtlebot's body-frame model from 2,000).
 Usage: ``python benchmarks/bench_layer.py [--quick] [--compile] [--data 500] [--n-plan 10]``
 """
@@ -46,12 +48,14 @@ def make_layer(reach, info, adjuster, n_plan: int):
 
 
 FLAGS = ("failsafe", "unverified_hold", "out_of_data")
+VELOCITY_DIMS = list(envs.safety_info(TASK).velocity_dims[:1])  # the forward speed
+REST_SPEED = 0.01
 
 
 def episode_times(layer, steps: int, towards_wall: bool, seed: int,
                   flags: dict[str, list[bool]] | None = None) -> list[float]:
     """The layer's ``compute_time`` of each step (s); ``flags``: filled with each step's ``intervened`` and
-    :data:`FLAGS` diagnostics."""
+    :data:`FLAGS` diagnostics, and ``at_rest`` (the robot's speed before the step under :data:`REST_SPEED`)."""
     env = TransformedEnv(envs.make(TASK, seed=seed, episode_steps=10_000), layer)
     td = env.reset()
     state = td["state"]
@@ -70,11 +74,13 @@ def episode_times(layer, steps: int, towards_wall: bool, seed: int,
         td["obstacles"] = obstacles
         td["plan"] = torch.tensor([speed] * layer.n_plan)
         td["action"] = td["plan"][0]
+        speed = float(td["state"][..., VELOCITY_DIMS].norm())
         td = env.step(td)
         times.append(td["next", "brsl", "compute_time"].item())
         if flags is not None:
             for name in ("intervened", *FLAGS):
                 flags.setdefault(name, []).append(bool(td["next", "brsl", name]))
+            flags.setdefault("at_rest", []).append(speed < REST_SPEED)
         td = env.step_mdp(td)
     return times
 
@@ -84,7 +90,7 @@ def step_shares(flags: dict[str, list[bool]], first: int) -> dict[str, float]:
     def share(values):
         return 100 * sum(values[first:]) / max(len(values[first:]), 1)
     verified = [i and not f for i, f in zip(flags["intervened"], flags["failsafe"])]
-    return {"verified": share(verified), **{name: share(flags[name]) for name in FLAGS}}
+    return {"verified": share(verified), **{name: share(flags[name]) for name in (*FLAGS, "at_rest")}}
 
 
 def shares(flags: dict[str, list[bool]], first: int) -> str:
@@ -159,7 +165,7 @@ def main() -> None:
 
     print(f"{TASK}: {N_OBSTACLES} obstacles, n_plan = {args.n_plan}, n_brk = {info.n_brk}, one CPU thread, "
           f"{malloc_name()}, {args.data} offline steps; % of the timed steps")
-    print(f"{'':<66}{'median ms':>12}{'p99 ms':>10}{'adjusted':>9}{'failsafe':>9}{'hold':>9}{'no data':>9}")
+    print(f"{'':<66}{'median ms':>12}{'p99 ms':>10}{'adjusted':>9}{'failsafe':>9}{'hold':>9}{'no data':>9}{'at rest':>9}")
     for label, (median, p99) in rows.items():
         print(f"{label:<66}{median:>12.3f}{p99:>10.3f}{flag_shares.get(label, '')}")
     for method in methods:
