@@ -16,8 +16,8 @@ layer row, the shares of its timed steps that the layer adjusted and verified, t
 failsafe or to ``unverified_hold``, whose proposal was ``out_of_data``, and at which the robot stood at rest
 (speed under 0.01 m/s): an adjusting row whose steps all end in the failsafe times the adjuster's budget, not its
 speed, and one whose robot has stopped at the wall times the steps that keep it there (a robot that cannot reverse,
-stopped a few mm nearer the wall, falls back wherever its stopped sets reach the wall). ``--data`` sets the offline steps (the recipes fit
-the Turtlebot's body-frame model from 2,000).
+stopped a few mm nearer the wall, falls back wherever its stopped sets reach the wall). ``--data`` sets the
+offline steps (the recipes fit the Turtlebot's body-frame model from 2,000).
 Usage: ``python benchmarks/bench_layer.py [--quick] [--compile] [--data 500] [--n-plan 10]``
 """
 from __future__ import annotations
@@ -165,7 +165,8 @@ def main() -> None:
 
     print(f"{TASK}: {N_OBSTACLES} obstacles, n_plan = {args.n_plan}, n_brk = {info.n_brk}, one CPU thread, "
           f"{malloc_name()}, {args.data} offline steps; % of the timed steps")
-    print(f"{'':<66}{'median ms':>12}{'p99 ms':>10}{'adjusted':>9}{'failsafe':>9}{'hold':>9}{'no data':>9}{'at rest':>9}")
+    columns = "".join(f"{name:>9}" for name in ("adjusted", "failsafe", "hold", "no data", "at rest"))
+    print(f"{'':<66}{'median ms':>12}{'p99 ms':>10}{columns}")
     for label, (median, p99) in rows.items():
         print(f"{label:<66}{median:>12.3f}{p99:>10.3f}{flag_shares.get(label, '')}")
     for method in methods:
