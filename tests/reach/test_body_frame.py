@@ -206,9 +206,11 @@ def _bicycle_states_outside(monkeypatch, floor: bool) -> int:
     monkeypatch.setattr(cells, "select_inputs", lambda inputs, target: torch.ones(inputs.shape[1], dtype=torch.bool))
     # nor the bend term: the grid's hinges cut the heading's bend into pieces, whose stray it covers too
     monkeypatch.setattr(cells, "bend_error", lambda low, high, features, points=None: low.new_zeros(low.shape[0]))
-    # and the grid of 8 hinges over 25 knots where this was measured: 50 knots put a hinge near enough to the kinks
+    # and the grid of 8 hinges over 25 knots where this was measured: 50 knots put a hinge near enough to the kinks,
+    # and so does a hinge halfway between two fitted ones
     monkeypatch.setattr(hinges, "MAX_HINGES", 8)
     monkeypatch.setattr(hinges, "KNOTS", 25)
+    monkeypatch.setattr(hinges, "midpoint_hinges", lambda directions, knots, signs: (directions[:0], knots[:0]))
     if not floor:
         monkeypatch.setattr(cells, "curvature_floor", lambda low, high, slopes, weights: slopes.new_zeros(len(low)))
     system = KinematicBicycle()

@@ -19,12 +19,13 @@ def program():
     """``(bicycle, eager, checker, adjuster, starts, scenes, rest)``: the bicycle's local model eagerly and compiled
     (``aot_eager``), its compiled checks and facet QP prepared for 8 envs' scenes (``prepare_checks`` and
     ``prepare_obstacles``, which the layer calls), slow, heading along x, a box ahead at 0.2-0.6 m (speeding up
-    collides), and full braking as every env's reference. The model is the fit of 8 hinges over 25 knots, on which
-    the scenes were chosen (the adjuster's steps stop between the reference and the proposal, at envs' different
-    halvings)."""
+    collides), and full braking as every env's reference. The model is the fit of 8 hinges over 25 knots without
+    the hinges halfway between fitted ones, on which the scenes were chosen (the adjuster's steps stop between the
+    reference and the proposal, at envs' different halvings)."""
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(hinges, "MAX_HINGES", 8)
         patch.setattr(hinges, "KNOTS", 25)
+        patch.setattr(hinges, "midpoint_hinges", lambda directions, knots, signs: (directions[:0], knots[:0]))
         bicycle, eager = bicycle_checker(policy=False)
     reach = copy.deepcopy(eager.reach).compile_steps(backend="aot_eager")
     checker = PlanChecker(reach, eager.failsafe, eager.horizon, stop_dims=(3,), stop_slack=0.1,
