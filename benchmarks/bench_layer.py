@@ -74,13 +74,13 @@ def episode_times(layer, steps: int, towards_wall: bool, seed: int,
         td["obstacles"] = obstacles
         td["plan"] = torch.tensor([speed] * layer.n_plan)
         td["action"] = td["plan"][0]
-        speed = float(td["state"][..., VELOCITY_DIMS].norm())
+        robot_speed = float(td["state"][..., VELOCITY_DIMS].norm())
         td = env.step(td)
         times.append(td["next", "brsl", "compute_time"].item())
         if flags is not None:
             for name in ("intervened", *FLAGS):
                 flags.setdefault(name, []).append(bool(td["next", "brsl", name]))
-            flags.setdefault("at_rest", []).append(speed < REST_SPEED)
+            flags.setdefault("at_rest", []).append(robot_speed < REST_SPEED)
         td = env.step_mdp(td)
     return times
 
