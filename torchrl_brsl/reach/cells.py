@@ -62,7 +62,7 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 from torchrl_brsl._compiling import small_matmul
-from torchrl_brsl.reach.hinges import Features, feature_values, fit_features, product_relaxation
+from torchrl_brsl.reach.hinges import Features, feature_values, fit_features, parallel_knots, product_relaxation
 
 
 class Cells(NamedTuple):
@@ -670,10 +670,6 @@ def slope_reach(slopes: Tensor, weights: Tensor) -> Tensor:
     return (slopes / torch.where(weights > 0, weights, 1.0)).norm(dim=-1).amax()
 
 
-CHAIN_COSINE = 0.95
-"""Hinges whose directions have at least this ``|cosine|`` are parallel (:func:`bend_error`)."""
-
-
 def bend_error(z_low: Tensor, z_high: Tensor, features: Features, points: list[Tensor] | None = None) -> Tensor:
     """How far a smooth bend may stray from the hinges that cut it, in each leaf: ``[M]``.
 
@@ -711,14 +707,7 @@ def bend_error(z_low: Tensor, z_high: Tensor, features: Features, points: list[T
     if directions.shape[0] < 2:
         return z_low.new_zeros(z_low.shape[0])
     coefficients = features.coefficients[:len(knots)]
-    length = directions.norm(dim=-1).clamp_min(1e-300)
-    unit = directions / length.unsqueeze(-1)
-    cosine = unit @ unit.T  # [H, H]
-    parallel = cosine.abs() >= CHAIN_COSINE
-    # knot i's and j's positions along unit i (an opposite hinge's knot lies at -k / |a|)
-    own = (knots / length).unsqueeze(1)  # [H, 1]
-    other = (knots / length).unsqueeze(0) * cosine.sign()  # [H, H]
-    gap = torch.where(parallel & ~torch.eye(len(knots), dtype=torch.bool), other - own, torch.nan)  # [H, H]
+    unit, length, own, other, gap = parallel_knots(directions, knots)
     left = torch.where(gap < 0, -gap, torch.inf).amin(-1, keepdim=True)  # [H, 1]: the nearest parallel knot below
     right = torch.where(gap > 0, gap, torch.inf).amin(-1, keepdim=True)
     same = coefficients.sign().unsqueeze(0) == coefficients.sign().unsqueeze(1)

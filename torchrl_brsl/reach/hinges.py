@@ -188,9 +188,31 @@ def fit_features(features: Tensor, directions: Tensor, inputs: Tensor, target: T
     return Features(hinge_dirs, hinge_knots, pair_directions[product], pair_knots[product], coefficients)
 
 
-def midpoint_hinges(directions: Tensor, knots: Tensor, signs: Tensor, cosine: float = 0.95) -> tuple[Tensor, Tensor]:
-    """A hinge halfway between each two parallel hinges (``|cos| >= cosine``) with no parallel knot between them and
-    coefficients of one sign (``signs`` ``[H]``: the two cut a bend, whose stray :func:`~torchrl_brsl.reach.cells.
+CHAIN_COSINE = 0.95
+"""Hinges whose directions have at least this ``|cosine|`` are parallel (:func:`parallel_knots`)."""
+
+
+def parallel_knots(directions: Tensor, knots: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Where the hinges ``relu(a · z - k)`` ``[H, d]``, ``[H]`` kink along each other's directions.
+
+    Returns:
+        ``(unit [H, d], length [H], own [H, 1], other [H, H], gap [H, H])``: the unit directions ``â = a / |a|`` and
+        ``|a|``; knot ``i``'s position ``k / |a|`` along ``â_i``, and knot ``j``'s along ``â_i`` (an opposite hinge's
+        knot lies at ``-k / |a|``); ``other - own`` where hinges ``i != j`` are parallel (:data:`CHAIN_COSINE`), else
+        NaN.
+    """
+    length = directions.norm(dim=-1).clamp_min(1e-300)
+    unit = directions / length.unsqueeze(-1)
+    cosine = unit @ unit.T  # [H, H]
+    own = (knots / length).unsqueeze(1)
+    other = (knots / length).unsqueeze(0) * cosine.sign()
+    parallel = (cosine.abs() >= CHAIN_COSINE) & ~torch.eye(len(knots), dtype=torch.bool, device=knots.device)
+    return unit, length, own, other, torch.where(parallel, other - own, torch.nan)
+
+
+def midpoint_hinges(directions: Tensor, knots: Tensor, signs: Tensor) -> tuple[Tensor, Tensor]:
+    """A hinge halfway between each two parallel hinges (:func:`parallel_knots`) with no parallel knot between them
+    and coefficients of one sign (``signs`` ``[H]``: the two cut a bend, whose stray :func:`~torchrl_brsl.reach.cells.
     bend_error` pays for), along the first one's direction: ``([P, d], [P])``.
 
     A servo saturating over a step's substeps kinks at several values of ``u - v``; a greedy step
@@ -199,17 +221,11 @@ def midpoint_hinges(directions: Tensor, knots: Tensor, signs: Tensor, cosine: fl
     0.16 apart from 0.4 to 1.04), and the bend term then pays for the wide gap."""
     if len(knots) < 2:
         return directions[:0], knots[:0]
-    length = directions.norm(dim=-1).clamp_min(1e-300)
-    unit = directions / length.unsqueeze(-1)
-    cos = unit @ unit.T  # [H, H]
-    position = knots / length  # along each own unit
-    other = position.unsqueeze(0) * cos.sign()  # [H, H]: knot j along unit i
-    gap = torch.where((cos.abs() >= cosine) & ~torch.eye(len(knots), dtype=torch.bool, device=knots.device),
-                      other - position.unsqueeze(1), torch.nan)  # [H, H]
+    _, length, own, _, gap = parallel_knots(directions, knots)
     above = torch.where(gap > 0, gap, torch.inf)
     nearest, index = above.amin(-1), above.argmin(-1)  # [H]: the next parallel knot above
     pairs = (torch.isfinite(nearest) & (signs == signs[index])).nonzero().flatten()
-    return directions[pairs], (position[pairs] + nearest[pairs] / 2) * length[pairs]
+    return directions[pairs], (own[pairs, 0] + nearest[pairs] / 2) * length[pairs]
 
 
 def refine_hinges(inputs: Tensor, directions: Tensor, knots: Tensor, base: Tensor, target: Tensor,
