@@ -79,11 +79,12 @@ WORST_NOISE_GAPS = {"diffdrive_nav:capped": "world-frame heading vector beyond t
 WORST_NOISE_QUERIES = 1000
 
 # the recipes' robots: a bar on the sets' median width over the spread of 30 noisy copies of the robot along each of
-# 10 plans (env_sample_reach). Measured here: 6.56 (capped quadrotor, 2,000 steps), 11.07 (wheeled Turtlebot, body
-# frame), 4.20 (capped point_boxes, 500 steps), the bars 26-31 % above (fits differ slightly between CPUs); with 20
-# plans of 100 copies (benchmarks/bench_task_tightness.py, which spread more) 5.5, 9.4 and 3.8. With 8 hinges over
-# 25 candidate knots they were 8.35, 11.7 and 6.4. The global model's sets are 120-460 times the spread there
-WIDTH_BARS = {"quadrotor_nav:capped": 8.5, "diffdrive_nav:wheeled:body": 14.0, "point_boxes:capped": 5.5}
+# 10 plans (env_sample_reach). Measured here: 5.40 (capped quadrotor, 2,000 steps), 11.04 (wheeled Turtlebot, body
+# frame), 4.01 (capped point_boxes, 500 steps), the bars 27-30 % above (fits differ slightly between CPUs); with 20
+# plans of 100 copies (benchmarks/bench_task_tightness.py, which spread more) 4.5, 9.4 and 3.7. Before the hinges
+# halfway between fitted ones they were 6.56, 11.07 and 4.20; with 8 hinges over 25 candidate knots 8.35, 11.7 and
+# 6.4. The global model's sets are 120-460 times the spread there
+WIDTH_BARS = {"quadrotor_nav:capped": 7.0, "diffdrive_nav:wheeled:body": 14.0, "point_boxes:capped": 5.2}
 
 
 def sampled(name: str, options: dict, steps: int, horizon: int, n_plans: int, body: bool = False, seed: int = 0,
