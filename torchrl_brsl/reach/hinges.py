@@ -148,10 +148,10 @@ def fit_features(features: Tensor, directions: Tensor, inputs: Tensor, target: T
     floor = n_points * float(noise_radius) ** 2 / 3
     for _ in range(max_features):
         regressors = torch.cat((base, hinge_features(inputs, hinge_dirs, hinge_knots)), dim=1)
-        signs = _coefficients(regressors, target)[base.shape[1]:].sign()
-        mid_dirs, mid_knots = midpoint_hinges(hinge_dirs, hinge_knots, signs)
-        if chosen_products:  # a smooth bend (bilinear): a hinge between two splits a curve, it finds no kink
-            mid_dirs, mid_knots = mid_dirs[:0], mid_knots[:0]
+        mid_dirs, mid_knots = hinge_dirs[:0], hinge_knots[:0]
+        if not chosen_products:  # after a product (a smooth, bilinear bend) a hinge between two splits a curve
+            signs = _coefficients(regressors, target)[base.shape[1]:].sign()
+            mid_dirs, mid_knots = midpoint_hinges(hinge_dirs, hinge_knots, signs)
         gain, remaining = _gains(regressors, torch.cat((candidates, hinge_features(inputs, mid_dirs, mid_knots)), 1),
                                  target)
         if remaining <= STOP_SHARE * floor:
