@@ -478,7 +478,9 @@ class DataDrivenReach(nn.Module):
         one affine map and stay eager: it records the choice for the rollout of a braking policy's
         tail (:class:`~torchrl_brsl.safety.PlanChecker`), which follows it (:attr:`compile_options`).
 
-        Calling it again with the same arguments keeps the compiled graphs.
+        Calling it again with the same arguments keeps the compiled graphs. The graphs hold torch's thread count
+        (:func:`torch.set_num_threads`): set it before this call and before the layer is appended, or the first
+        steps after a change compile again.
 
         Args:
             enabled: ``False`` returns to eager steps.
