@@ -10,8 +10,8 @@ models of ``--models`` are timed: ``global``, ``local`` and ``body`` (the local 
 the recipes fit the Turtlebot, from ``--data`` offline steps; the recipes use 2,000). Beside each row, the shares of
 the timed steps (constant brake, then linear policy) that the layer adjusted and verified, and that fell back to the
 failsafe: a row of failsafe steps may time the adjuster's budget (0.1 s) rather than the brake's cost (the world-frame
-local model from 500 steps claims no plan of the wall scene), and with ``--quick`` (30 steps) a model with tight sets
-does not reach the wall, so its adjusting rows adjust nothing. ``--compile`` compiles the models
+local model from 500 steps claims no plan of the wall scene); ``--quick`` (30 steps) puts the wall nearer
+(``bench_layer.QUICK_WALL``), so that its adjusting rows adjust. ``--compile`` compiles the models
 (``DataDrivenReach.compile_steps``): the global model's braking tails (one graph for the tail's rollout and one for
 its Jacobian chain, compiled in the untimed first steps), the local model's plans with the braking policy's tail in
 the same compiled loop, and the facet QP's linearisation along it (one graph each per policy, compiled when the layer
@@ -34,7 +34,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
 import envs  # noqa: E402
-from bench_layer import N_PLAN, TASK, episode_times, stats, step_shares  # noqa: E402
+from bench_layer import N_PLAN, QUICK_WALL, TASK, WALL, episode_times, stats, step_shares  # noqa: E402
 from torchrl_brsl.reach import BodyFrame, DataDrivenReach, collect_offline_data  # noqa: E402
 from torchrl_brsl.safety import BRSLSafetyLayer, FacetQPAdjuster, Failsafe, GradientAdjuster, PlanChecker  # noqa: E402
 from torchrl_brsl.safety.adjust import _feedback_jacobian  # noqa: E402
@@ -58,7 +58,7 @@ def main() -> None:
     noise = Zonotope(info.noise_center.double(), info.noise_generators.double())
     data = collect_offline_data(envs.make(TASK, empty=True, seed=1), args.data,
                                 generator=torch.Generator().manual_seed(0))
-    steps = 30 if args.quick else 120
+    steps, wall = (30, QUICK_WALL) if args.quick else (120, WALL)
     zero = info.braking_action
     velocity = list(info.velocity_dims)
     brakes = {"constant": Failsafe(zero, info.n_brk),
@@ -85,7 +85,7 @@ def main() -> None:
                                         action_low=info.action_low, action_high=info.action_high,
                                         adjuster=adjuster())
                 flags = {}
-                times = episode_times(layer, steps, towards_wall, 0, flags)
+                times = episode_times(layer, steps, towards_wall, 0, flags, wall)
                 row[name], outcome[name] = stats(times[first:]), adjusted_and_failsafe(flags, first)
             (m0, p0), (m1, p1), (m2, p2) = row["constant"], row["policy"], row["linear"]
             print(f"{method + ': ' + label:<44}{m0:>9.2f} /{p0:>5.1f}{m1:>9.2f} /{p1:>5.1f}{m2:>9.2f} /{p2:>5.1f}"

@@ -50,12 +50,16 @@ def make_layer(reach, info, adjuster, n_plan: int):
 FLAGS = ("failsafe", "unverified_hold", "out_of_data")
 VELOCITY_DIMS = list(envs.safety_info(TASK).velocity_dims[:1])  # the forward speed
 REST_SPEED = 0.01
+WALL, QUICK_WALL = 1.6, 0.8
+"""How far ahead the adjusting scene's wall stands (m): at full speed the robot reaches it in about 64 steps, or 32,
+so that ``--quick`` (30 steps, 12 untimed) times adjusting steps too."""
 
 
 def episode_times(layer, steps: int, towards_wall: bool, seed: int,
-                  flags: dict[str, list[bool]] | None = None) -> list[float]:
+                  flags: dict[str, list[bool]] | None = None, wall: float = WALL) -> list[float]:
     """The layer's ``compute_time`` of each step (s); ``flags``: filled with each step's ``intervened`` and
-    :data:`FLAGS` diagnostics, and ``at_rest`` (the robot's speed before the step under :data:`REST_SPEED`)."""
+    :data:`FLAGS` diagnostics, and ``at_rest`` (the robot's speed before the step under :data:`REST_SPEED`);
+    ``wall``: how far ahead the wall of ``towards_wall`` stands (m)."""
     env = TransformedEnv(envs.make(TASK, seed=seed, episode_steps=10_000), layer)
     td = env.reset()
     state = td["state"]
@@ -65,7 +69,7 @@ def episode_times(layer, steps: int, towards_wall: bool, seed: int,
     obstacles = td["obstacles"].clone()
     obstacles["mask"] = mask
     if towards_wall:  # put obstacle 0 (a wall) ahead of the robot
-        obstacles["center"][0] = state[:2] + 1.6 * state[2:4]
+        obstacles["center"][0] = state[:2] + wall * state[2:4]
         speed = [0.25, 0.0]
     else:
         speed = [0.05, 0.0]
@@ -121,7 +125,7 @@ def main() -> None:
                         help="planned steps before braking (1: the recipes' default, one action then braking)")
     args = parser.parse_args()
     info, noise, data = offline_data(args.data)
-    steps = 30 if args.quick else 120
+    steps, wall = (30, QUICK_WALL) if args.quick else (120, WALL)
     rows, flag_shares = {}, {}
     methods = METHODS + (COMPILED if args.compile else ())
     for method in methods:
@@ -135,9 +139,9 @@ def main() -> None:
                                GradientAdjuster()), ("adjusting every step: facet-locked QP", FacetQPAdjuster())):
             layer = make_layer(reach, info, adjuster or GradientAdjuster(), args.n_plan)
             if method in COMPILED:  # compile outside the timing
-                episode_times(layer, 15, adjuster is not None, 0)
+                episode_times(layer, 15, adjuster is not None, 0, wall=wall)
             flags = {}
-            times = episode_times(layer, steps, adjuster is not None, 0, flags)
+            times = episode_times(layer, steps, adjuster is not None, 0, flags, wall)
             # adjusting: once the wall is within braking distance every step adjusts
             first = 12 if adjuster is not None else 5
             rows[f"{method}: layer, {name}"] = stats(times[first:])
