@@ -151,6 +151,26 @@ def test_save_and_load_roundtrip(tmp_path):
     assert loaded.translation_invariant_dims == (0, 1) and loaded.covering_radius == reach.covering_radius
 
 
+def test_load_state_dict_rebuilds_what_the_model_derived_from_its_buffers():
+    """``load_state_dict`` copies into the buffers in place; the sets follow the loaded model, not tables derived from
+    the old one (the global model's transfer matrices, the local model's leaf rows; both cached at the first reach)."""
+    system = Unicycle()
+    plan = system.sample_actions(5, generator=torch.Generator().manual_seed(0))
+    x0 = Zonotope.from_point(torch.zeros(4, dtype=torch.float64))
+    old, new = fit(system, 400, seed=0), fit(system, 400, seed=1)
+    old.reach(x0, plan)
+    old.load_state_dict(new.state_dict())
+    got, want = old.reach(x0, plan), new.reach(x0, plan)
+    torch.testing.assert_close(got.center, want.center, rtol=0, atol=0)
+    torch.testing.assert_close(got.generators, want.generators, rtol=0, atol=0)
+    local = fit(system, 400, method="local", max_generators=10)
+    before = local.reach(x0, plan).center
+    state = local.state_dict()
+    state["cell_offset"] = state["cell_offset"] + 0.5  # every leaf's model moved by 0.5 on every output
+    local.load_state_dict(state)
+    torch.testing.assert_close(local.reach(x0, plan).center[0], before[0] + 0.5, rtol=0, atol=1e-12)
+
+
 def test_translation_invariance_is_exact():
     system = DoubleIntegrator()
     reach = fit(system)

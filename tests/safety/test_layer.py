@@ -44,6 +44,20 @@ def test_parallel_env_with_layer_outside():
     assert not td["next", "collision"].any()
 
 
+def test_load_state_dict_rebuilds_the_checkers_from_the_loaded_model():
+    """The checker's tables (the global model's affine rollouts, built at the first step) follow a loaded model."""
+    layer = copy.deepcopy(make_layer(TASK))  # a copy: the session's fitted model stays as it is
+    td = TransformedEnv(envs.make(TASK, seed=0), layer).rollout(3)
+    x0, plan = td["next", "state"][-1:].double(), torch.tensor([[[0.1, 0.2]]], dtype=torch.float64)
+    checked = layer.checker
+    state = layer.state_dict()
+    state["reach.offset"] = state["reach.offset"] + 0.01  # a drift of 1 cm a step
+    layer.load_state_dict(state)
+    actions, centers = layer.checker.rollout(x0, plan)
+    assert layer.checker is not checked and layer.decision.checker is layer.checker
+    torch.testing.assert_close(centers, layer.reach.reach_centers(x0, actions), rtol=0, atol=1e-12)
+
+
 def test_writes_executed_action_and_diagnostics_on_reset_and_step():
     env = layered_env()
     td = env.reset()

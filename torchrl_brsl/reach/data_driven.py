@@ -689,6 +689,15 @@ class DataDrivenReach(nn.Module):
         self._cache.clear()
         return super()._apply(fn, recurse)
 
+    def _load_from_state_dict(self, *args, **kwargs):
+        """``load_state_dict`` copies into the buffers in place: what is derived from them (the global model's transfer
+        matrices, the local model's step and its tables) is rebuilt from the loaded values, its compiled graphs
+        warmed up again."""
+        super()._load_from_state_dict(*args, **kwargs)
+        self._cache.clear()
+        if self._compile is not None and self.plan_dependent:
+            self._warm_up()
+
     def _transfer(self, horizon: int) -> tuple[Tensor, Tensor, Tensor]:
         """``Ā^1..Ā^H`` ``[H, n, n]``, the block-Toeplitz input map ``[H n, H m]`` and the drift ``[H, n]``."""
         key = ("transfer", horizon)

@@ -199,6 +199,8 @@ class BRSLSafetyLayer(Transform):
         self._checker: PlanChecker | None = None
         self._local_checker: PlanChecker | None = None
         self._decision: SafetyDecision | None = None
+        self._prepared: Obstacles | None = None  # the obstacle shapes the compiled checks were prepared for
+        self.register_load_state_dict_post_hook(BRSLSafetyLayer._rebuild_checkers)
         if action_low is not None and action_high is not None:
             _ = self.checker, self.local_checker  # validate the settings now rather than at the first step
 
@@ -342,6 +344,7 @@ class BRSLSafetyLayer(Transform):
         """Compile a compiled local model's checks and its adjuster's programs for the env's obstacle shapes ``[B, K,
         ...]`` (``B`` envs) now (:meth:`PlanChecker.prepare_checks`, the adjuster's ``prepare_obstacles`` if it has
         one), not at the first step."""
+        self._prepared = obstacles
         if not any(reach is not None and reach.plan_dependent and reach.compile_options is not None
                    for reach in (self.reach, self.local_reach)):
             return
@@ -349,6 +352,17 @@ class BRSLSafetyLayer(Transform):
             checker.prepare_checks(obstacles)
             if hasattr(self.adjuster, "prepare_obstacles"):
                 self.adjuster.prepare_obstacles(checker, obstacles)
+
+    @staticmethod
+    def _rebuild_checkers(layer: BRSLSafetyLayer, incompatible_keys) -> None:
+        """After ``load_state_dict``: the checkers and the decision, whose tables (affine rollouts, stop tolerances,
+        the adjusters' rows) came from the models' old buffers, are built again from the loaded ones (and their
+        compiled checks prepared again)."""
+        layer._checker = layer._local_checker = layer._decision = None
+        if layer._bounds[0] is not None and layer._bounds[1] is not None:
+            _ = layer.checker, layer.local_checker
+        if layer._prepared is not None:
+            layer._prepare_checks(layer._prepared)
 
     # ----------------------------------------------------------------- specs
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
