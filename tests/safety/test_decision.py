@@ -145,6 +145,27 @@ def test_an_adjusters_result_of_the_wrong_kind_or_shape_is_a_clear_error(decide,
         SafetyDecision(decide.checker, decide.failsafe, _Broken(spoil))(x0, proposal, safe_plan, steps, obstacles)
 
 
+class _Diverges:
+    """A custom adjuster whose iteration diverged: it checks the NaN plans it reached and reports their verdict."""
+
+    def __call__(self, checker, x0, plan, obstacles, start=None, reference=None):
+        lost = torch.full_like(plan, float("nan"))
+        return Adjustment(lost, checker.evaluate(x0, lost, obstacles), torch.ones(len(x0), dtype=torch.long))
+
+
+def test_an_adjuster_that_diverges_to_nan_plans_ends_in_the_verified_brake_not_an_error(decide):
+    """Inside the decision the checks take what an adjuster tried, NaN included, without raising mid-episode: a NaN
+    plan is never verified, and the env brakes from its measured state, verified."""
+    x0, proposal, safe_plan, steps, obstacles = _scene(2)
+    step = SafetyDecision(decide.checker, decide.failsafe, _Diverges())(x0, proposal, safe_plan, steps, obstacles)
+    assert step.diagnostics["failsafe"].all() and (step.safe_steps > 0).all()
+    braked = decide.checker.evaluate(x0, decide.checker.brake(x0).unsqueeze(1), obstacles)
+    assert braked.safe.all()
+    torch.testing.assert_close(step.executed, braked.actions[:, 0])
+    with pytest.raises(ValueError, match="`plan` contains NaN"):  # outside a decision, a NaN plan is an error
+        decide.checker.evaluate(x0, torch.full_like(proposal, float("nan")), obstacles)
+
+
 class _BrakesHardLocally:
     """A custom adjuster that gives up under the main checker and, under the local domain's (bounds +-0.5), claims
     full braking at -0.8: inside the robot's bounds (+-1), beyond the domain's, verified by that checker."""

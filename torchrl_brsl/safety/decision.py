@@ -27,6 +27,7 @@ from torch import Tensor
 from torchrl_brsl.safety.failsafe import Failsafe
 from torchrl_brsl.safety.plan_check import PlanChecker, PlanEvaluation
 from torchrl_brsl.sets import Obstacles
+from torchrl_brsl.sets._checks import skip_value_checks
 
 INPUT_LIMIT = 1e100
 """Magnitude from which an entry of the state, proposal or a real obstacle counts as invalid (like NaN/inf)."""
@@ -104,7 +105,16 @@ class SafetyDecision:
                 verified leading actions.
             obstacles: batch ``[B]``.
             start: ``time.perf_counter()`` at the start of the step (the adjusters' time budget).
+
+        The inputs are sanitised first (:func:`_sanitize`); inside, the checks skip their NaN scans
+        (:func:`~torchrl_brsl.sets._checks.skip_value_checks`): a plan an adjuster reached with NaN entries is
+        checked, never verified, and the env brakes instead of the control loop stopping on an error.
         """
+        with skip_value_checks():
+            return self._decide(x0, proposal, safe_plan, safe_steps, obstacles, start)
+
+    def _decide(self, x0: Tensor, proposal: Tensor, safe_plan: Tensor, safe_steps: Tensor, obstacles: Obstacles,
+                start: float | None) -> StepDecision:
         dtype = self.checker.reach.state_matrix.dtype
         x0, plan, safe_plan = x0.to(dtype), proposal.to(dtype), safe_plan.to(dtype)
         x0, plan, obstacles, safe_plan, safe_steps, valid, corrupt = _sanitize(

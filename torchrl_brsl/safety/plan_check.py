@@ -16,7 +16,7 @@ from torchrl_brsl.collision.closed_form import CLOSED_FORM_DIMS, rows_at
 from torchrl_brsl.reach import DataDrivenReach
 from torchrl_brsl.safety.failsafe import Failsafe
 from torchrl_brsl.sets import Obstacles, Zonotope, reduce_girard
-from torchrl_brsl.sets._checks import check_tensor, skip_value_checks
+from torchrl_brsl.sets._checks import check_tensor, skip_value_checks, value_checks_enabled
 from torchrl_brsl.sets.reduction import girard_columns
 
 
@@ -543,9 +543,23 @@ class PlanChecker:
         the plan's :meth:`rollout_sets` when already at hand (a local model); without it, a compiled local model
         checks the plan in the loop that computes its sets (:meth:`_fuses_check`). ``tangents``: ``(dx [B, n, k],
         du [B, P, m, k])`` (a local model, no ``rollout``), mapped along the same rollout as :meth:`rollout_sets`
-        maps them; the centres' directions ``[B, T, n, k]`` then follow the gauge."""
+        maps them; the centres' directions ``[B, T, n, k]`` then follow the gauge.
+
+        A plan with NaN or infinite entries is an error, but where the value checks are off (inside
+        :class:`~torchrl_brsl.safety.SafetyDecision`, whose inputs are sanitised and whose adjusters may reach such
+        plans): there it is checked as the hold action and never verified."""
         if tangents is not None and (rollout is not None or not self.plan_dependent):
             raise ValueError("`tangents` need a local model's own rollout (no `rollout`)")
+        finite = None if value_checks_enabled() or rollout is not None else torch.isfinite(plan).flatten(1).all(-1)
+        if finite is not None and not bool(finite.all()):
+            plan = torch.where(finite.view(-1, 1, 1), plan, self.hold(plan))
+            evaluation, *rest = self._evaluate_with_gauge(x0, plan, obstacles, detail, rollout, tangents)
+            return evaluation._replace(safe=evaluation.safe & finite), *rest
+        return self._evaluate_with_gauge(x0, plan, obstacles, detail, rollout, tangents)
+
+    def _evaluate_with_gauge(self, x0: Tensor, plan: Tensor, obstacles: Obstacles, detail: bool,
+                             rollout: tuple[Tensor, Zonotope, Tensor] | None,
+                             tangents: tuple[Tensor, Tensor] | None) -> tuple:
         lp, moved, compiled_gauge = self.uses_lp(obstacles), (), True
         if self.plan_dependent and rollout is None and not lp and self._fuses_check(x0, plan):
             finish = (_checked_sets, (obstacles.center, obstacles.generators, obstacles.mask), self.check_args)

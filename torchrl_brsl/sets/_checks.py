@@ -23,6 +23,11 @@ def skip_value_checks():
         _VALUE_CHECKS.pop()
 
 
+def value_checks_enabled() -> bool:
+    """Whether sets and checks scan their tensors for NaN/inf (off within :func:`skip_value_checks`)."""
+    return _VALUE_CHECKS[-1]
+
+
 def check_tensor(name: str, value, *, min_ndim: int = 0, finite: bool = True) -> Tensor:
     """Return ``value`` as a floating tensor or raise a ``ValueError`` naming ``name``.
 
