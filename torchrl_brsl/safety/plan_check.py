@@ -545,9 +545,10 @@ class PlanChecker:
         du [B, P, m, k])`` (a local model, no ``rollout``), mapped along the same rollout as :meth:`rollout_sets`
         maps them; the centres' directions ``[B, T, n, k]`` then follow the gauge.
 
-        A plan with NaN or infinite entries is an error, but where the value checks are off (inside
+        A plan with NaN or infinite entries is never verified: a local model's rollout rejects it (``ValueError``)
+        and a global model's values count it as colliding, but where the value checks are off (inside
         :class:`~torchrl_brsl.safety.SafetyDecision`, whose inputs are sanitised and whose adjusters may reach such
-        plans): there it is checked as the hold action and never verified."""
+        plans) it is checked as the hold action and reported unsafe."""
         if tangents is not None and (rollout is not None or not self.plan_dependent):
             raise ValueError("`tangents` need a local model's own rollout (no `rollout`)")
         finite = None if value_checks_enabled() or rollout is not None else torch.isfinite(plan).flatten(1).all(-1)
