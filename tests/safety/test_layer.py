@@ -58,6 +58,17 @@ def test_load_state_dict_rebuilds_the_checkers_from_the_loaded_model():
     torch.testing.assert_close(centers, layer.reach.reach_centers(x0, actions), rtol=0, atol=1e-12)
 
 
+def test_a_move_rebuilds_the_checkers_on_the_models_new_dtype():
+    """``.to()`` that moves or casts the model rebuilds the checkers on it (a dtype stands in for a device here);
+    one that changes nothing keeps them."""
+    layer = copy.deepcopy(make_layer(TASK))
+    checked = layer.checker
+    layer.to(torch.float64)
+    assert layer.checker is checked
+    layer.to(torch.float32)
+    assert layer.checker is not checked and layer.checker.action_low.dtype == torch.float32
+
+
 def test_writes_executed_action_and_diagnostics_on_reset_and_step():
     env = layered_env()
     td = env.reset()

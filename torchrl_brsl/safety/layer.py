@@ -353,15 +353,28 @@ class BRSLSafetyLayer(Transform):
             if hasattr(self.adjuster, "prepare_obstacles"):
                 self.adjuster.prepare_obstacles(checker, obstacles)
 
+    def _apply(self, fn, recurse=True):
+        """``.to()``, ``.double()`` and the like: where they move or cast the models, the checkers follow
+        (:meth:`_rebuild_checkers`), their tables built on the models' new device and dtype."""
+        def placement():
+            models = (getattr(self, "reach", None), getattr(self, "local_reach", None))
+            return [(r.state_matrix.device, r.state_matrix.dtype) for r in models if r is not None]
+
+        before = placement()
+        result = super()._apply(fn, recurse)
+        if placement() != before:
+            BRSLSafetyLayer._rebuild_checkers(self, None)
+        return result
+
     @staticmethod
     def _rebuild_checkers(layer: BRSLSafetyLayer, incompatible_keys) -> None:
-        """After ``load_state_dict``: the checkers and the decision, whose tables (affine rollouts, stop tolerances,
-        the adjusters' rows) came from the models' old buffers, are built again from the loaded ones (and their
-        compiled checks prepared again)."""
+        """After ``load_state_dict`` (or a move, :meth:`_apply`): the checkers and the decision, whose tables (affine
+        rollouts, stop tolerances, the adjusters' rows) came from the models' old buffers, are built again from the
+        new ones (and their compiled checks prepared again)."""
         layer._checker = layer._local_checker = layer._decision = None
         if layer._bounds[0] is not None and layer._bounds[1] is not None:
             _ = layer.checker, layer.local_checker
-        if layer._prepared is not None:
+        if getattr(layer, "_prepared", None) is not None:
             layer._prepare_checks(layer._prepared)
 
     # ----------------------------------------------------------------- specs
