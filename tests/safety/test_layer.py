@@ -62,11 +62,13 @@ def test_a_move_rebuilds_the_checkers_on_the_models_new_dtype():
     """``.to()`` that moves or casts the model rebuilds the checkers on it (a dtype stands in for a device here);
     one that changes nothing keeps them."""
     layer = copy.deepcopy(make_layer(TASK))
-    checked = layer.checker
+    TransformedEnv(envs.make(TASK, seed=0), layer)  # appended: the obstacle shapes to prepare for are kept
+    checked, prepared = layer.checker, layer._prepared
     layer.to(torch.float64)
-    assert layer.checker is checked
+    assert layer.checker is checked and layer._prepared is prepared
     layer.to(torch.float32)
     assert layer.checker is not checked and layer.checker.action_low.dtype == torch.float32
+    assert layer._prepared is not prepared and layer._prepared.center.device == layer.reach.state_matrix.device
 
 
 def test_writes_executed_action_and_diagnostics_on_reset_and_step():

@@ -223,7 +223,7 @@ def midpoint_hinges(directions: Tensor, knots: Tensor, signs: Tensor) -> tuple[T
         return directions[:0], knots[:0]
     _, length, own, _, gap = parallel_knots(directions, knots)
     above = torch.where(gap > 0, gap, torch.inf)
-    nearest, index = above.amin(-1), above.argmin(-1)  # [H]: the next parallel knot above
+    nearest, index = above.min(-1)  # [H]: the next parallel knot above
     pairs = (torch.isfinite(nearest) & (signs == signs[index])).nonzero().flatten()
     return directions[pairs], (own[pairs, 0] + nearest[pairs] / 2) * length[pairs]
 

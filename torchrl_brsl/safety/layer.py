@@ -363,6 +363,9 @@ class BRSLSafetyLayer(Transform):
         before = placement()
         result = super()._apply(fn, recurse)
         if placement() != before:
+            if self._prepared is not None:  # the shapes to prepare for, on the models' new device
+                device = self.reach.state_matrix.device
+                self._prepared = self._prepared._map(lambda t, _: t.to(device))
             BRSLSafetyLayer._rebuild_checkers(self, None)
         return result
 
@@ -374,7 +377,7 @@ class BRSLSafetyLayer(Transform):
         layer._checker = layer._local_checker = layer._decision = None
         if layer._bounds[0] is not None and layer._bounds[1] is not None:
             _ = layer.checker, layer.local_checker
-        if getattr(layer, "_prepared", None) is not None:
+        if layer._prepared is not None:
             layer._prepare_checks(layer._prepared)
 
     # ----------------------------------------------------------------- specs
