@@ -27,8 +27,7 @@ def gauge_lp(A: np.ndarray, b: np.ndarray) -> float:
     A_ub = np.block([[eye, -ones], [-eye, -ones]])
     b_ub = np.zeros(2 * p)
     A_eq = np.hstack([A, np.zeros((m, 1))])
-    res = linprog(cost, A_ub=A_ub, b_ub=b_ub, A_eq=A_eq, b_eq=b, bounds=[(None, None)] * p + [(0, None)],
-                  method="highs")
+    res = _linprog(cost, A_ub=A_ub, b_ub=b_ub, A_eq=A_eq, b_eq=b, bounds=[(None, None)] * p + [(0, None)])
     if res.status == 2:
         return float("inf")
     if res.status != 0:
@@ -44,8 +43,8 @@ def support_lp(direction: np.ndarray, center: np.ndarray, G: np.ndarray, A: np.n
         ``(max_x d.x, argmax x)``; raises ``ValueError`` if the set is empty.
     """
     p = G.shape[1]
-    res = linprog(-(direction @ G), A_eq=A if A.shape[0] else None, b_eq=b if A.shape[0] else None,
-                  bounds=[(-1.0, 1.0)] * p, method="highs")
+    res = _linprog(-(direction @ G), A_eq=A if A.shape[0] else None, b_eq=b if A.shape[0] else None,
+                   bounds=[(-1.0, 1.0)] * p)
     if res.status == 2:
         raise ValueError("the constrained zonotope is empty")
     if res.status != 0:
@@ -62,7 +61,7 @@ def polytope_bounds(H: np.ndarray, h: np.ndarray) -> tuple[np.ndarray, np.ndarra
         for sign, out in ((1.0, lo), (-1.0, hi)):
             cost = np.zeros(n)
             cost[i] = sign
-            res = linprog(cost, A_ub=H, b_ub=h, bounds=[(None, None)] * n, method="highs")
+            res = _linprog(cost, A_ub=H, b_ub=h, bounds=[(None, None)] * n)
             if res.status == 2:
                 raise ValueError("the polytope `H x <= h` is empty")
             if res.status == 3:
@@ -71,3 +70,17 @@ def polytope_bounds(H: np.ndarray, h: np.ndarray) -> tuple[np.ndarray, np.ndarra
                 raise RuntimeError(f"HiGHS failed: {res.message}")
             out[i] = res.x[i]
     return lo, hi
+
+
+NUMERICAL_DIFFICULTIES = 4
+""":func:`scipy.optimize.linprog`'s status where the solver gave up on the problem's numerics."""
+
+
+def _linprog(cost: np.ndarray, **problem):
+    """:func:`scipy.optimize.linprog` with HiGHS's choice of method, and its interior-point method where that gives up on
+    the numerics (a capped quadrotor's 6 x 30 gauge problem with two zero generators: the dual simplex stopped with
+    "Not Set", the interior point solved it)."""
+    res = linprog(cost, method="highs", **problem)
+    if res.status == NUMERICAL_DIFFICULTIES:
+        res = linprog(cost, method="highs-ipm", **problem)
+    return res
