@@ -145,10 +145,16 @@ def test_hinge_selection_past_the_noise_variance_fits_the_quadrotors_bend(monkey
     no true state outside its set. Teeth: stopping the hinge selection once the whole residual is down to the
     noise's variance (``hinges.STOP_SHARE = 1``, as before) left the vertical servo's smooth bend cut by two
     hinges 0.046 m/s off, and let 2 of 4,389 states out (1.9 mm/s beyond a 0.059 m/s half-width). The bend term
-    (:func:`~torchrl_brsl.reach.cells.bend_error`) covers that stray too: the teeth need it off."""
+    (:func:`~torchrl_brsl.reach.cells.bend_error`) covers that stray too: the teeth need it off. Teeth of the leaves'
+    hidden noise (:data:`~torchrl_brsl.reach.cells.HIDDEN_QUANTILES`): read from the nearest pairs' largest excess
+    too, it let 4 states out."""
     horizon = envs.safety_info("quadrotor_nav").n_brk + 1
     _, claimed, inside = sampled("quadrotor_nav", {}, 500, horizon, 400, seed=2)
     assert claimed.float().mean() >= 0.9 and inside.all(), f"{int((~inside).sum())} outside"
+    with monkeypatch.context() as patch:  # a leaf's hidden noise read from its largest excess too: 4 outside
+        patch.setattr(cells, "HIDDEN_QUANTILES", cells.HIDDEN_QUANTILES + (1.0,))
+        _, _, inside = sampled("quadrotor_nav", {}, 500, horizon, 400, seed=2)
+        assert not inside.all(), "the sampling should catch a hidden noise that takes a kink's pairs for noise"
     monkeypatch.setattr(hinges, "STOP_SHARE", 1.0)
     monkeypatch.setattr(cells, "bend_error", lambda low, high, features, points=None: low.new_zeros(low.shape[0]))
     _, claimed, inside = sampled("quadrotor_nav", {}, 500, horizon, 400, seed=2)

@@ -47,7 +47,10 @@ the same size hides from the pairs; nor below the slope that a quadratic fitted 
 residual reaches over its box (:func:`corner_slopes`, :func:`slope_reach`): the box extends beyond
 the data, between whose pairs the estimate looks. Where hinges of one sign cut a smooth bend into
 pieces, the bend's stray from them between their knots is added to the leaf's error
-(:func:`bend_error`): it too can hide below the noise.
+(:func:`bend_error`): it too can hide below the noise. Where nearby points scatter beyond ``w̄``
+(a step that depends on something the state does not hold), a leaf may read part of the scatter
+as a hidden noise ``h`` instead of slope, if that is tighter: ``w̄ + h`` in the pairs and the
+envelope, and ``h`` added to the half-width as a disturbance of every step (:func:`_bound_cell`).
 """
 from __future__ import annotations
 
@@ -430,8 +433,8 @@ def _output_cells(inputs: Tensor, boxes: list[tuple], fits: list[tuple], noise_r
                        [inputs[fit] for _, _, fit, _ in boxes] if noise_free else None)
     for leaf, ((lo, hi, fit, index), (theta, residual)) in enumerate(zip(boxes, fits)):
         floor = torch.maximum(floors[leaf], slope_reach(slopes[leaf], weights))
-        errors, centre, lipschitz, delta = _bound_cell(inputs[fit], residual[:, 0], noise_radius, weights, margin,
-                                                       floor)
+        errors, centre, lipschitz, delta, _ = _bound_cell(inputs[fit], residual[:, 0], noise_radius, weights, margin,
+                                                          floor)
         errors = torch.maximum(errors + bends[leaf], range_error(spans[leaf], centre, noise_radius, *extremes))
         cells.append((lo, hi, theta[1:, 0], theta[0, 0] + centre, errors, lipschitz, delta,
                       errors / noise_radius.clamp_min(1e-12)))
@@ -773,16 +776,54 @@ def _affine_fit(z: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def _bound_cell(z: Tensor, residual: Tensor, noise_radius: Tensor, weights: Tensor, margin: float,
-                floor: Tensor, chunk: int = 256) -> tuple[Tensor, Tensor, Tensor]:
-    """Error interval of one output on one cell, in the weighted metric (module docstring).
+                floor: Tensor, chunk: int = 256) -> tuple[Tensor, Tensor, Tensor, Tensor, float]:
+    """Error interval of one output on one cell, in the weighted metric (module docstring), with the hidden noise
+    that makes it tightest.
+
+    Nearby points whose residuals differ by more than twice the declared noise ``w̄`` make the pairwise Lipschitz
+    estimate steep: every difference is read as slope. Where a robot's step depends on something its state does not
+    hold (a wheel's slip, a contact's state), that scatter is noise the declaration misses. Every ``w̄ + h`` with its
+    own ``L(h)`` is as consistent with the leaf's pairs; taken as a disturbance of its own at every step (added to the
+    half-width), ``h`` gives the bound ``e(h) = envelope(w̄ + h) + h + L(h) δ``. The candidates are quantiles
+    (:data:`HIDDEN_QUANTILES`) of the nearest-neighbour pairs' excess ``(|r_i - r_j| / 2 - w̄)_+``, and ``h = 0``; one
+    is kept where it lowers ``e`` and does not raise ``L``, so that its bound is no wider at any distance beyond
+    ``δ`` (the wheeled Turtlebot's heading step, 2,000 offline steps: the leaves' median ``L`` 0.10 -> 0.06, their
+    error 0.012 -> 0.009). Points the metric cannot tell apart whose residuals differ beyond ``w̄`` still get no
+    bound: the metric leaves out an input the output depends on, which is not noise.
 
     Returns:
-        ``(half-width, centre, lipschitz, δ)``, scalars: ``g(z) ∈ centre ± (half-width +
-        lipschitz (D - δ)_+)`` at distance ``D`` from the data.
+        ``(half-width, centre, lipschitz, δ, h)``: ``g(z) ∈ centre ± (half-width + lipschitz (D - δ)_+)`` at distance
+        ``D`` from the data, the half-width holding the hidden noise ``h`` (a float, 0 where none is kept).
     """
     weighted = z * weights  # [s, d]
+    nearest, neighbour = _nearest(weighted)
+    delta = nearest.max()
+    best, kept = _bound_at_noise(weighted, residual, noise_radius, margin, floor, delta, chunk), 0.0
+    if len(weighted) < 2 or not bool(torch.isfinite(best[2])):  # no pair; or the metric drops an input it needs
+        return (*best, delta, kept)
+    excess = ((residual - residual[neighbour]).abs() / 2 - noise_radius).clamp_min(0)
+    for hidden in torch.quantile(excess, excess.new_tensor(HIDDEN_QUANTILES)).unique().tolist():
+        if hidden > 0:
+            half, centre, lipschitz = _bound_at_noise(weighted, residual, noise_radius + hidden, margin, floor, delta,
+                                                      chunk)
+            if bool(half + hidden < best[0]) and bool(lipschitz <= best[2]):
+                best, kept = (half + hidden, centre, lipschitz), hidden
+    return (*best, delta, kept)
+
+
+HIDDEN_QUANTILES = (0.5, 0.75, 0.9)
+"""The quantiles of the nearest-neighbour pairs' excess over the declared noise that :func:`_bound_cell` tries as a
+leaf's hidden noise. Not the largest excess: a pair that straddles a kink differs by slope, not by noise (with 1
+tried too, the capped quadrotor's model from 500 offline steps, torch seed 2, let 4 of 4,389 sampled states out of
+its sets; without it none, nor in seeds 0 and 1)."""
+
+
+def _bound_at_noise(weighted: Tensor, residual: Tensor, noise_radius: Tensor, margin: float, floor: Tensor,
+                    delta: Tensor, chunk: int) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`_bound_cell`'s ``(half-width, centre, lipschitz)`` for the noise radius ``noise_radius``, on the weighted
+    inputs ``[s, d]``."""
     diameter = (weighted.amax(0) - weighted.amin(0)).norm().clamp_min(1e-12)
-    blocks = torch.split(torch.arange(len(z)), chunk)
+    blocks = torch.split(torch.arange(len(weighted)), chunk)
     slope = residual.new_zeros(())
     for rows in blocks:  # pairwise, in row blocks of [c, s]
         distance = torch.cdist(weighted[rows], weighted)
@@ -791,9 +832,8 @@ def _bound_cell(z: Tensor, residual: Tensor, noise_radius: Tensor, weights: Tens
         slope = torch.maximum(slope, steep.amax())
     spread = torch.maximum(2 * noise_radius, residual.amax() - residual.amin())
     lipschitz = torch.maximum(torch.maximum(slope * margin, spread / diameter), floor)
-    delta = _nearest_distance(weighted).max()
     if not bool(torch.isfinite(lipschitz)):  # points the metric cannot tell apart differ beyond the noise
-        return residual.new_tensor(torch.inf), residual.new_zeros(()), lipschitz, delta
+        return residual.new_tensor(torch.inf), residual.new_zeros(()), lipschitz
     upper, lower = residual.new_tensor(-torch.inf), residual.new_tensor(torch.inf)
     for rows in blocks:  # max_j min_i (r_i + L d_ij), min_j max_i (r_i - L d_ij)
         reach = lipschitz * torch.cdist(weighted[rows], weighted)
@@ -801,13 +841,15 @@ def _bound_cell(z: Tensor, residual: Tensor, noise_radius: Tensor, weights: Tens
         lower = torch.minimum(lower, (residual - reach).amax(-1).amin())
     upper = upper + noise_radius + lipschitz * delta
     lower = lower - noise_radius - lipschitz * delta
-    return (upper - lower) / 2, (upper + lower) / 2, lipschitz, delta
+    return (upper - lower) / 2, (upper + lower) / 2, lipschitz
 
 
-def _nearest_distance(points: Tensor) -> Tensor:
-    """Distance of every point to its nearest other point: ``[s]``."""
-    dist, _ = cKDTree(points.detach().cpu().numpy()).query(points.detach().cpu().numpy(), k=2)
-    return torch.as_tensor(np.asarray(dist)[:, 1], dtype=points.dtype)
+def _nearest(points: Tensor) -> tuple[Tensor, Tensor]:
+    """Every point's distance to its nearest other point and that point's index: ``([s], [s])``."""
+    array = points.detach().cpu().numpy()
+    dist, index = cKDTree(array).query(array, k=2)  # a lone point: inf, and index s
+    return (torch.as_tensor(np.asarray(dist)[:, 1], dtype=points.dtype),
+            torch.as_tensor(np.minimum(np.asarray(index)[:, 1], len(array) - 1), dtype=torch.long))
 
 
 def leaf_gaps(low: Tensor, high: Tensor, phi: Tensor, phi_radius: Tensor) -> tuple[Tensor, Tensor]:

@@ -59,7 +59,10 @@ class DataDrivenReach(nn.Module):
     holding the set's centre and the worst error over the leaves the set meets, so the
     generators depend on the plan and the sets are computed step by step
     (:meth:`step_sets`); a step outside the data's region is reported not covered
-    (:meth:`reach_covered`). The one-fit form above is ``method="global"``.
+    (:meth:`reach_covered`). Where nearby data scatter beyond ``W`` (a step that depends on
+    something the state does not hold), a leaf may bound part of that scatter as a hidden noise
+    of every step instead of as slope, where that is tighter (:func:`~torchrl_brsl.reach.cells._bound_cell`).
+    The one-fit form above is ``method="global"``.
 
     **Domain.** ``fit(..., domain=(low, high))`` keeps only the transitions whose
     ``(x, u)`` lie in that box and claims nothing outside it. A model of a small domain
