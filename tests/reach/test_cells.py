@@ -273,17 +273,18 @@ def test_a_robot_with_hidden_noise_gets_sets_that_hold_its_sampled_states(monkey
 
 
 def test_a_leaf_keeps_the_hidden_noise_that_lowers_its_bound_without_raising_its_lipschitz_constant(monkeypatch):
-    """A leaf whose residual jumps by ``±0.02`` at random (a two-valued hidden disturbance, none declared) around a
-    gentle curve: read as slope, its nearest pairs make the constant steep; the leaf keeps a hidden noise instead, with a
-    smaller half-width and constant."""
+    """A leaf whose residual jumps up by 0.02 at random (a two-valued hidden disturbance, none declared) around a
+    gentle curve: read as slope, its nearest pairs make the constant steep; the leaf keeps a hidden noise instead,
+    with a smaller half-width and constant."""
     gen = torch.Generator().manual_seed(0)
     z = torch.rand(200, 2, generator=gen, dtype=torch.float64)
     jump = 0.02 * torch.randint(0, 2, (200,), generator=gen).to(torch.float64)
     residual = 0.05 * (z[:, 0] - 0.5) ** 2 + jump
-    noise, floor, weights = torch.tensor(0.0, dtype=torch.float64), torch.tensor(0.0, dtype=torch.float64), torch.ones(2)
-    half, _, lipschitz, _, hidden = cells._bound_cell(z, residual, noise, weights.double(), 1.5, floor)
+    noise = floor = torch.tensor(0.0, dtype=torch.float64)
+    weights = torch.ones(2, dtype=torch.float64)
+    half, _, lipschitz, _, hidden = cells._bound_cell(z, residual, noise, weights, 1.5, floor)
     monkeypatch.setattr(cells, "HIDDEN_QUANTILES", ())
-    slope_half, _, slope_lipschitz, _, none = cells._bound_cell(z, residual, noise, weights.double(), 1.5, floor)
+    slope_half, _, slope_lipschitz, _, none = cells._bound_cell(z, residual, noise, weights, 1.5, floor)
     assert none == 0.0 and 0 < hidden < 0.011  # half the jump, and a little of the curve between nearest points
     assert half < slope_half and lipschitz <= slope_lipschitz, (half, slope_half, lipschitz, slope_lipschitz)
 

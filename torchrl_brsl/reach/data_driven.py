@@ -61,8 +61,8 @@ class DataDrivenReach(nn.Module):
     (:meth:`step_sets`); a step outside the data's region is reported not covered
     (:meth:`reach_covered`). Where nearby data scatter beyond ``W`` (a step that depends on
     something the state does not hold), a leaf may bound part of that scatter as a hidden noise
-    of every step instead of as slope, where that is tighter (:func:`~torchrl_brsl.reach.cells._bound_cell`).
-    The one-fit form above is ``method="global"``.
+    of every step instead of as slope, where that is tighter (:mod:`~torchrl_brsl.reach.cells`,
+    :data:`~torchrl_brsl.reach.cells.HIDDEN_QUANTILES`). The one-fit form above is ``method="global"``.
 
     **Domain.** ``fit(..., domain=(low, high))`` keeps only the transitions whose
     ``(x, u)`` lie in that box and claims nothing outside it. A model of a small domain

@@ -77,8 +77,8 @@ NUMERICAL_DIFFICULTIES = 4
 
 
 def _linprog(cost: np.ndarray, **problem):
-    """:func:`scipy.optimize.linprog` with HiGHS's choice of method, and its interior-point method where that gives up on
-    the numerics (a capped quadrotor's 6 x 30 gauge problem with two zero generators: the dual simplex stopped with
+    """:func:`scipy.optimize.linprog` with HiGHS's choice of method, and its interior-point method where that gives up
+    on the numerics (a capped quadrotor's 6 x 30 gauge problem with two zero generators: the dual simplex stopped with
     "Not Set", the interior point solved it)."""
     res = linprog(cost, method="highs", **problem)
     if res.status == NUMERICAL_DIFFICULTIES:
