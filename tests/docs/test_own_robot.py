@@ -43,6 +43,13 @@ def test_the_one_step_sets_hold_at_the_worst_noise(walkthrough):
     assert not worst[claimed].any()
 
 
+def test_the_error_budget_shows_the_steps_errors_adding_up_near_the_data(walkthrough):
+    last = walkthrough["last_step"]  # the velocities' parts at the plans' last step
+    torch.testing.assert_close(last["radius"], walkthrough["budget"]["radius"][:, -1].median(0).values)
+    assert (last["carried"][2:] > last["added"][2:]).all() and (last["added"][2:] > last["noise"][2:]).all()
+    assert (last["far"][2:] < last["leaf"][2:]).all()
+
+
 def test_the_layer_keeps_the_rover_collision_free_and_moving(walkthrough):
     assert walkthrough["unprotected"] > 0  # the random policy does collide without the layer
     assert walkthrough["collisions"] == 0

@@ -582,3 +582,41 @@ def test_leaf_distance_matches_a_brute_force_oracle(path):
             assert (distance[~exact, k, leaf] >= expected[~exact] - 1e-12).all(), (k, leaf)
             looser += int((distance[~exact, k, leaf] > expected[~exact] + 1e-9).sum())
     assert (looser > 0) == (path == "near")  # the bound of the leaves not searched is a bound, not exact
+
+
+def test_the_error_budget_splits_each_steps_width_as_the_sets_grow():
+    """:meth:`DataDrivenReach.error_budget` on the body-frame bicycle (hinges, products, rotation) and the world-frame
+    saturated point: the radii are the sets' own, each is the width carried through the step plus the width it adds,
+    and without a body frame the step adds its declared noise and exactly the four parts of its model error."""
+    for system, options in ((KinematicBicycle(), {"body_frame": KinematicBicycle().body_frame}),
+                            (SaturatedThrustPoint(), {})):
+        reach = shared_fit(system, 500, max_generators=24, **options)
+        x0, plans, _ = random_plans(system, n_plans=6)
+        budget = reach.error_budget(Zonotope.from_point(x0), plans)
+        sets, covered = reach.reach_covered(Zonotope.from_point(x0), plans)
+        assert budget.batch_size == plans.shape[:-1] and budget["radius"].shape == sets.center.shape
+        torch.testing.assert_close(budget["radius"], sets.radius(), rtol=1e-9, atol=1e-12)
+        torch.testing.assert_close(budget["carried"] + budget["added"], budget["radius"], rtol=1e-12, atol=1e-15)
+        assert torch.equal(budget["covered"].all(-1), covered)
+        assert (budget["added"] >= budget["noise"] - 1e-12).all()
+        parts = budget["leaf"] + budget["far"] + budget["between"] + budget["relaxation"]
+        assert (parts > 0).all() and (budget["relaxation"] > 0).any() and (budget["between"] > 0).any()
+        if reach.body_frame is None:
+            torch.testing.assert_close(parts, budget["added"] - budget["noise"], rtol=1e-9, atol=1e-12)
+
+
+def test_the_error_budget_says_when_a_set_leaves_the_data():
+    """A start beyond the saturated point's data speeds: the step's error is mostly ``far`` (the Lipschitz term over
+    the distance to the leaves' data) and the step is not covered; a start inside its data has no ``far`` at all.
+    A global model has no budget to split."""
+    system = SaturatedThrustPoint()
+    reach = shared_fit(system, 500)
+    inside = (system.state_low + system.state_high) / 2
+    beyond = inside.clone()
+    beyond[2:] = 1.5 * system.state_high[2:]
+    plan = system.sample_actions(1, 3, generator=torch.Generator().manual_seed(0))[0]
+    near, far = (reach.error_budget(Zonotope.from_point(x), plan) for x in (inside, beyond))
+    assert near["covered"].all() and (near["far"][0] == 0).all()
+    assert not far["covered"][0] and (far["far"][0] > far["leaf"][0]).all()
+    with pytest.raises(ValueError, match="local model"):
+        fit(system, 200, method="global").error_budget(Zonotope.from_point(inside), plan)

@@ -871,7 +871,7 @@ def leaf_gaps(low: Tensor, high: Tensor, phi: Tensor, phi_radius: Tensor) -> tup
 def leaf_bounds(cells: Cells, z_center: Tensor, z_radius: Tensor, phi_radius: Tensor, feature_low: Tensor,
                 feature_high: Tensor, distance: Tensor, phi: Tensor | None = None,
                 gaps: tuple[Tensor, Tensor] | None = None,
-                slopes_by_input: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+                slopes_by_input: Tensor | None = None, terms: dict | None = None) -> tuple[Tensor, Tensor, Tensor]:
     """Per output, one leaf's affine model and an error bound valid over a whole query set.
 
     The leaves tile the data's region, so every ``z`` of the query set lies in one of the
@@ -894,6 +894,9 @@ def leaf_bounds(cells: Cells, z_center: Tensor, z_radius: Tensor, phi_radius: Te
         slopes_by_input: ``[n, d + H + Q, M]`` ``cells.slopes.mT``, contiguous (a compiled step's sums over the
             inputs then run across the leaves, without a horizontal sum per leaf: the Turtlebot's body-frame plan
             loop ran 1.1-1.3x faster at batches 1-4).
+        terms: a dict that receives, per output, the three parts of the error ``[..., n]`` of the leaf that sets it:
+            ``"leaf"`` (``e_l``), ``"far"`` (``L_l (D_l - δ_l)_+``) and ``"between"`` (the gap to the used
+            model).
 
     Returns:
         ``(index [..., n], errors [..., n], covered [...])``: the leaf whose model is used, the
@@ -913,10 +916,15 @@ def leaf_bounds(cells: Cells, z_center: Tensor, z_radius: Tensor, phi_radius: Te
     chosen = prediction.gather(-1, index.unsqueeze(-1))
     slope_gap = by_input - cells.slopes.reshape(n * n_leaves, width)[flat].unsqueeze(-1)  # [..., n, d + H + Q, M]
     model_gap = (prediction - chosen).abs() + (slope_gap.abs() * half.unsqueeze(-1)).sum(-2)  # fused when compiled
-    bound = cells.errors + cells.lipschitz * (distance - cells.delta).clamp_min(0) + model_gap
+    far = cells.lipschitz * (distance - cells.delta).clamp_min(0)
+    bound = cells.errors + far + model_gap
     errors = torch.where(gap_out <= 0, bound, -torch.inf).amax(-1)
     missed = ~torch.isfinite(errors)  # outside every leaf (not covered): all of them, finite
     errors = torch.where(missed, bound.amax(-1), errors)
+    if terms is not None:
+        setting = torch.where(missed.unsqueeze(-1) | (gap_out <= 0), bound, -torch.inf).argmax(-1, keepdim=True)
+        parts = {"leaf": cells.errors.expand_as(bound), "far": far, "between": model_gap}
+        terms.update({name: part.gather(-1, setting).squeeze(-1) for name, part in parts.items()})
     covered = ~missed.any(-1) & (centre_out.amin(-1) <= 0).all(-1) & (_root_excess(cells, phi, phi_radius) <= 0)
     return index, errors, covered
 

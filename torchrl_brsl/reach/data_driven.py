@@ -441,6 +441,50 @@ class DataDrivenReach(nn.Module):
         generators = generators.expand(*batch, *generators.shape[-2:])
         return self._local_step().plan_sets(center, generators, actions, tangents, brake, finish)
 
+    def error_budget(self, initial: Zonotope, actions: Tensor) -> TensorDict:
+        """Where a local model's sets get their width, step by step: what to change where the layer holds a robot.
+
+        The sets of :meth:`reach` (computed eagerly, without gradients), each step's interval radius split into the
+        previous set's width mapped through the step and the width the step adds, and the model error it adds split
+        by its cause. Per step ``j`` and state dim:
+
+        - ``radius``: the set's interval radius, ``carried + added``;
+        - ``carried``: the previous set's width mapped through the step (how the step's slopes grow it);
+        - ``added``: the step's own width: its model error and the noise ``W`` (in a body frame also the rotation's
+          remainder, :class:`~torchrl_brsl.reach.BodyFrame`);
+        - ``noise``: ``W``'s radius (``added`` cannot fall below it);
+        - the model error per output, in the frame of the model's outputs (a body frame's position and heading
+          outputs are body-frame steps), the leaf that sets it: ``leaf``, the error on its data (the residuals'
+          envelope, ``L δ``, a hidden noise: more or better spread data, or a state that holds what the step depends
+          on); ``far``, ``L (D - δ)_+`` where the set reaches beyond the leaf's data (data where the plans go);
+          ``between``, the gap between the models of the leaves the set meets; and ``relaxation``, the hinges' and
+          products' relaxations over the set (both grow with the set: shorter plans, tighter starts);
+        - ``covered`` ``[..., T]``: the step lies in the data's region (:meth:`reach_covered`).
+
+        Args:
+            initial: initial sets, batch ``[...]``.
+            actions: ``[..., T, m]`` plans.
+
+        Returns:
+            A :class:`~tensordict.TensorDict` of batch ``[..., T]``, entries ``[..., T, n]`` but ``covered``.
+
+        Examples:
+            >>> budget = reach.error_budget(Zonotope.from_point(x0), plan)  # a plan the layer does not verify
+            >>> budget["added"].median(0).values, budget["far"].median(0).values  # noise, or data off the plan?
+        """
+        if not self.plan_dependent:
+            raise ValueError("`error_budget` is for a local model (method='local'); a global model's sets add the "
+                             "same error every step (see `error_generators_sequence`)")
+        actions = self._check_reach_args(initial, actions)
+        dtype = self.state_matrix.dtype
+        batch = broadcast_shapes(initial.batch_size, actions.shape[:-2])
+        center, generators = initial.center.to(dtype).expand(*batch, -1), initial.generators.to(dtype)
+        with torch.no_grad():
+            parts = self._local_step().error_budget(center, generators.expand(*batch, *generators.shape[-2:]),
+                                                    actions.to(dtype).expand(*batch, *actions.shape[-2:]))
+        parts["noise"] = torch.zeros_like(parts["radius"]) + self.noise.generators.abs().sum(-1)
+        return TensorDict(parts, batch_size=parts["covered"].shape)
+
     def step_sets(self, center: Tensor, generators: Tensor, action: Tensor,
                   tangents: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, ...]:
         """One step of a local model: ``R_j = Z(center, generators)`` under ``action`` ``[..., m]``

@@ -407,8 +407,9 @@ class LocalStep:
                 *(flat(t, t.ndim - len(batch)) for t in batched))
 
     def _step(self, center: Tensor, generators: Tensor, action: Tensor,
-              tangents: tuple[Tensor, Tensor] | None) -> tuple[Tensor, ...]:
-        """The step itself (:meth:`__call__`'s arguments and results), traced as one graph when compiled."""
+              tangents: tuple[Tensor, Tensor] | None, budget: dict | None = None) -> tuple[Tensor, ...]:
+        """The step itself (:meth:`__call__`'s arguments and results), traced as one graph when compiled. ``budget``
+        (eager): a dict that receives the parts of the step's error (:meth:`error_budget`)."""
         cells, n = self.cells, self.state_dim
         z_raw = torch.cat((center.index_select(-1, self.free), action), dim=-1)  # [..., d]
         g_free = generators.index_select(-2, self.free)  # [..., n_F, p] (actions are exact)
@@ -429,7 +430,7 @@ class LocalStep:
         near = self._near(gaps[0].detach()) if torch.compiler.is_compiling() else None
         distance = leaf_distance(cells, None, z_center.detach(), z_radius.detach(), layout=self.layout, near=near)
         index, errors, covered = leaf_bounds(cells, z_center, z_radius, phi_radius, feature_low, feature_high, distance,
-                                             phi, gaps, self.slopes_by_input)
+                                             phi, gaps, self.slopes_by_input, terms=budget)
         A, B, offset, theta, theta_p = self.leaf_rows[index + self.row_offset].split(self.widths, dim=-1)
         # the relaxations relu(s) ∈ λ s + μ ± μ and s1 s2 ∈ λ1 s1 + λ2 s2 + κ ± ε fold into the leaf's
         # model
@@ -439,7 +440,8 @@ class LocalStep:
         shift = constant - (factor_slope * self.product_knots).sum(-1)
         offset = (offset.squeeze(-1) + (theta * (offset_h - slope * cells.hinge_knots)).sum(-1)
                   + (theta_p * shift).sum(-1))
-        errors = errors + (theta.abs() * offset_h).sum(-1) + (theta_p.abs() * product_error).sum(-1)
+        relaxation = (theta.abs() * offset_h).sum(-1) + (theta_p.abs() * product_error).sum(-1)
+        errors = errors + relaxation
         A = A.index_add(-1, self.free, along[..., :len(self.inv_scale_free)])
         B = B + along[..., len(self.inv_scale_free):]
         new_center = small_matmul(A, center.unsqueeze(-1)) + small_matmul(B, action.unsqueeze(-1))
@@ -453,9 +455,23 @@ class LocalStep:
         if self.noise_generators is not None:
             new = (*new, self.noise_generators.expand(*new_center.shape, -1))
         generators = torch.cat((carried, *new), dim=-1)
+        if budget is not None:
+            budget.update(relaxation=relaxation, carried=carried.abs().sum(-1),
+                          added=generators[..., carried.shape[-1]:].abs().sum(-1))
         if self.max_generators is not None and generators.shape[-1] > self.max_generators:
             generators = girard_columns(generators, self.max_generators)  # finite by construction
         return (new_center, generators, covered) if tangents is None else (new_center, generators, covered, moved)
+
+    def error_budget(self, center: Tensor, generators: Tensor, actions: Tensor) -> dict[str, Tensor]:
+        """Where the sets of a plan get their width: the eager steps under ``actions`` ``[..., T, m]`` from
+        ``Z(center [..., n], generators [..., n, p])``, each step's parts stacked ``[..., T, n]``
+        (:meth:`DataDrivenReach.error_budget <torchrl_brsl.reach.DataDrivenReach.error_budget>`)."""
+        steps, after = [], center.ndim - 1  # the plan's dim after the batch dims
+        for action in actions.unbind(-2):
+            budget = {}
+            center, generators, covered = self._step(center, generators, action, None, budget)
+            steps.append({**budget, "radius": generators.abs().sum(-1), "covered": covered})
+        return {name: torch.stack([step[name] for step in steps], after) for name in steps[0]}
 
     def _near(self, gaps: Tensor) -> Tensor:
         """The leaves whose data a compiled step searches, ``[..., n, K]``, from the set's ``gaps`` to every leaf
