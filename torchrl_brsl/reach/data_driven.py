@@ -444,9 +444,10 @@ class DataDrivenReach(nn.Module):
     def error_budget(self, initial: Zonotope, actions: Tensor) -> TensorDict:
         """Where a local model's sets get their width, step by step: what to change where the layer holds a robot.
 
-        The sets of :meth:`reach` (computed eagerly, without gradients), each step's interval radius split into the
-        previous set's width mapped through the step and the width the step adds, and the model error it adds split
-        by its cause. Per step ``j`` and state dim:
+        The sets of :meth:`reach`, computed eagerly and without gradients (a compiled model's agree up to rounding,
+        :meth:`compile_steps`), each step's interval radius split into the previous set's width mapped through the
+        step and the width the step adds, and the model error it adds split by its cause. Per step ``j`` and state
+        dim:
 
         - ``radius``: the set's interval radius, ``carried + added``;
         - ``carried``: the previous set's width mapped through the step (how the step's slopes grow it);
