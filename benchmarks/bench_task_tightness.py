@@ -12,9 +12,12 @@ last, and the sampled states outside their claimed sets; with ``--per-dim`` also
 (over the claimed plans' steps where the samples spread in it). The same plans, starts and noise for both models.
 ``--noise vertices`` holds each copy's noise at a random vertex of ``W`` for the whole plan, a constant worst case:
 the ratio then compares the sets with (nearly) the true reachable set's extent instead of typical noise's spread.
+``--budget`` also prints where a local model's sets get their width at the plans' first and last steps
+(:meth:`~torchrl_brsl.reach.DataDrivenReach.error_budget`, medians over the claimed plans): per state dim the radius,
+the part carried through the step, the part the step adds and the noise's; per output the model error's parts.
 
 Usage: ``python benchmarks/bench_task_tightness.py [--plans 20] [--samples 100] [--data 500,2000]
-[--tasks quadrotor_nav,...] [--models local,global] [--per-dim] [--noise vertices]``
+[--tasks quadrotor_nav,...] [--models local,global] [--per-dim] [--noise vertices] [--budget]``
 """
 from __future__ import annotations
 
@@ -26,6 +29,7 @@ from bench_task_soundness import TASKS, fit_task
 
 import envs
 from torchrl_brsl.reach import SampledReach, env_sample_reach
+from torchrl_brsl.sets import Zonotope
 
 MODELS = ("local", "global")
 
@@ -52,6 +56,21 @@ def row(name: str, steps: int, model: str, result: SampledReach) -> str:
             f"{median(ratios[:, :1]):>10}{median(ratios[:, -1:]):>10}{outside:>16}")
 
 
+BUDGET_PARTS = ("radius", "carried", "added", "noise", "leaf", "far", "between", "relaxation")
+
+
+def budget_rows(reach, result: SampledReach) -> list[str]:
+    """The error budget's parts at the first and the last step, medians over the claimed plans, a line each."""
+    claimed = result.covered
+    budget = reach.error_budget(Zonotope.from_point(result.starts[claimed]), result.plans[claimed])
+    rows = []
+    for step, label in ((0, "first"), (-1, "last")):
+        for part in BUDGET_PARTS:
+            values = budget[part][:, step].median(0).values
+            rows.append(f"{'':<20}{label:>6} {part:<11}{' '.join(f'{v:9.2e}' for v in values.tolist())}")
+    return rows
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--plans", type=int, default=20, help="sampled plans per task and data size")
@@ -64,6 +83,8 @@ def main() -> None:
     parser.add_argument("--noise", choices=("uniform", "vertices"), default="uniform",
                         help="the copies' noise: the task's, or each copy's at a random vertex of W throughout "
                              "(the spread then approaches the reachable set's extent)")
+    parser.add_argument("--budget", action="store_true",
+                        help="also where a local model's sets get their width (DataDrivenReach.error_budget)")
     args = parser.parse_args()
     unknown = sorted(set(args.tasks.split(",")) - set(TASKS)) + sorted(set(args.models.split(",")) - set(MODELS))
     if unknown:
@@ -80,6 +101,8 @@ def main() -> None:
                 print(f"{row(name, steps, model, result)}   {time.perf_counter() - start:.0f} s", flush=True)
                 if args.per_dim and bool(result.covered.any()):
                     print(f"{'':<20}per dim: {', '.join(f'{v:.2f}' for v in result.median_dim_ratio.tolist())}")
+                if args.budget and model == "local" and bool(result.covered.any()):
+                    print("\n".join(budget_rows(reach, result)))
 
 
 if __name__ == "__main__":

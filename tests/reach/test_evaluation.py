@@ -117,6 +117,8 @@ def test_env_sample_reach_spreads_copies_of_a_mujoco_robot_by_their_noise_alone(
     assert result.outside.shape == result.width_ratio.shape == (6, horizon) and result.samples == 30
     assert result.checked >= 3 * horizon * 30 and result.violations == 0
     assert 1.0 <= result.median_ratio < 10.0
+    assert result.starts.shape == (6, 4) and result.plans.shape == (6, horizon, 2)  # what was sampled, to re-check
+    assert torch.equal(reach.reach_covered(Zonotope.from_point(result.starts), result.plans)[1], result.covered)
     velocities = result.median_dim_ratio[2:]  # the noise enters there: they spread from the first step
     assert result.dim_ratio.shape == (6, horizon, 4) and bool(((velocities >= 1) & (velocities < 10)).all())
     vertices = run("vertices")[1]  # each copy's noise at a vertex of W: the first step spreads over all of W

@@ -23,6 +23,8 @@ class SampledReach(NamedTuple):
         covered: ``[P]`` whether the model claims the plan (see :meth:`DataDrivenReach.reach_covered`).
         samples: ``S``.
         dim_ratio: ``[P, H, n]`` the same per state dim (``nan`` where the samples do not spread).
+        starts, plans: ``[P, n]`` and ``[P, H, m]``, the plans and their starts (e.g. for
+            :meth:`DataDrivenReach.error_budget`).
     """
 
     outside: Tensor
@@ -30,6 +32,8 @@ class SampledReach(NamedTuple):
     covered: Tensor
     samples: int
     dim_ratio: Tensor
+    starts: Tensor
+    plans: Tensor
 
     @property
     def violations(self) -> int:
@@ -81,7 +85,7 @@ def sample_reach(reach: DataDrivenReach, step: Callable[[Tensor, Tensor], Tensor
             x = step(x, action)
             states.append(x)
         compared.append(_compare(sets[p], torch.stack(states, 1)))
-    return _sampled(compared, covered, samples)
+    return _sampled(compared, covered, samples, x0, plans)
 
 
 def _compare(sets: Zonotope, states: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -96,10 +100,11 @@ def _compare(sets: Zonotope, states: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     return points_outside(sets, states).sum(0), ratio, per_dim
 
 
-def _sampled(compared: list[tuple[Tensor, Tensor, Tensor]], covered: Tensor, samples: int) -> SampledReach:
+def _sampled(compared: list[tuple[Tensor, Tensor, Tensor]], covered: Tensor, samples: int, starts: Tensor,
+             plans: Tensor) -> SampledReach:
     """The plans' :func:`_compare` results, stacked."""
     outside, ratios, per_dim = (torch.stack(parts) for parts in zip(*compared))
-    return SampledReach(outside, ratios, covered, samples, per_dim)
+    return SampledReach(outside, ratios, covered, samples, per_dim, starts, plans)
 
 
 SPREAD_FLOOR = 1e-12
@@ -161,7 +166,7 @@ def env_sample_reach(reach: DataDrivenReach, env, plans: int, horizon: int, acti
             outcomes.append(torch.stack([states for states, _ in runs]))  # [S, H, n]
     x0, chosen = torch.stack(starts), torch.stack(chosen)
     sets, covered = reach.reach_covered(Zonotope.from_point(x0), chosen)
-    return _sampled([_compare(sets[p], states) for p, states in enumerate(outcomes)], covered, samples)
+    return _sampled([_compare(sets[p], states) for p, states in enumerate(outcomes)], covered, samples, x0, chosen)
 
 
 MAX_VERTEX_GENERATORS = 12
