@@ -433,13 +433,17 @@ class DataDrivenReach(nn.Module):
         point ``center``), its arguments unchecked: the safety layer's path, whose checker checks its own start and
         plan (:meth:`~torchrl_brsl.safety.PlanChecker.rollout_sets`; a ``Zonotope`` of the start and the checks
         of :meth:`reach_covered` cost a tenth of a compiled check)."""
+        center, generators, actions = self._plan_start(center, generators, actions)
+        return self._local_step().plan_sets(center, generators, actions, tangents, brake, finish)
+
+    def _plan_start(self, center: Tensor, generators: Tensor | None, actions: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """A local model's plan inputs in its dtype: the start ``Z(center, generators)`` (``None``: the point) expanded
+        to the plans' batch, the actions ``[..., T, m]`` as given."""
         dtype = self.state_matrix.dtype
         actions, center = actions.to(dtype), center.to(dtype)
         generators = center.new_zeros(*center.shape, 0) if generators is None else generators.to(dtype)
         batch = broadcast_shapes(center.shape[:-1], generators.shape[:-2], actions.shape[:-2])
-        center = center.expand(*batch, self.state_dim)
-        generators = generators.expand(*batch, *generators.shape[-2:])
-        return self._local_step().plan_sets(center, generators, actions, tangents, brake, finish)
+        return center.expand(*batch, self.state_dim), generators.expand(*batch, *generators.shape[-2:]), actions
 
     def error_budget(self, initial: Zonotope, actions: Tensor) -> TensorDict:
         """Where a local model's sets get their width, step by step: what to change where the layer holds a robot.
@@ -476,13 +480,10 @@ class DataDrivenReach(nn.Module):
         if not self.plan_dependent:
             raise ValueError("`error_budget` is for a local model (method='local'); a global model's sets add the "
                              "same error every step (see `error_generators_sequence`)")
-        actions = self._check_reach_args(initial, actions)
-        dtype = self.state_matrix.dtype
-        batch = broadcast_shapes(initial.batch_size, actions.shape[:-2])
-        center, generators = initial.center.to(dtype).expand(*batch, -1), initial.generators.to(dtype)
-        with torch.no_grad():
-            parts = self._local_step().error_budget(center, generators.expand(*batch, *generators.shape[-2:]),
-                                                    actions.to(dtype).expand(*batch, *actions.shape[-2:]))
+        center, generators, actions = self._plan_start(initial.center, initial.generators,
+                                                       self._check_reach_args(initial, actions))
+        with torch.no_grad():  # the steps take the plans' batch whole
+            parts = self._local_step().error_budget(center, generators, actions.expand(*center.shape[:-1], -1, -1))
         parts["noise"] = torch.zeros_like(parts["radius"]) + self.noise.generators.abs().sum(-1)
         return TensorDict(parts, batch_size=parts["covered"].shape)
 
