@@ -13,6 +13,11 @@ systems (500 offline transitions each):
 (d) local model (the default), full sets, eager;
 (e) local model, its steps compiled (``compile_steps``).
 
+Then where (e)'s time goes: its time at plan lengths 2, 10 and 20 fitted as ``per call + per step * T``,
+beside one call of a compiled function that adds up ``k`` small tensors (inductor, C++ wrapper; ``k`` = 1
+and 40, about the count of the model's tensors the plan's loop takes): the compiler's own floor per call,
+which every compiled plan pays before its first step.
+
 Usage: ``python benchmarks/bench_reach.py [--quick]``
 """
 from __future__ import annotations
@@ -22,12 +27,15 @@ import argparse
 import torch
 from bench_collision import median_ms
 
+from torchrl_brsl._compiling import inductor_kwargs
 from torchrl_brsl._malloc import malloc_name
 from torchrl_brsl.reach import DataDrivenReach, DoubleIntegrator, Unicycle
 from torchrl_brsl.sets import Zonotope
 
 N_PLAN = 20
 TARGET_MS = 0.3
+LENGTHS = (2, 10, 20)
+FLOOR_INPUTS = (1, 40)
 
 
 def run(system, quick: bool) -> dict[str, float]:
@@ -54,7 +62,30 @@ def run(system, quick: bool) -> dict[str, float]:
         "local": eager,
         "compiled": median_ms(lambda: local.reach(initial, plan), max(repeats // 5, 10), 3),
         "disagreement": disagreement,
+        "lengths": [median_ms(lambda t=t: local.reach(initial, plan[:t]), max(repeats // 5, 10), 3) for t in LENGTHS],
     }
+
+
+def call_floor(inputs: int, repeats: int) -> float:
+    """Median ms of one call of a compiled function that adds up ``inputs`` tensors of 4 doubles (inductor, C++ wrapper,
+    the plan loop's options): what a compiled call costs before any work of its own."""
+    tensors = [torch.zeros(4, dtype=torch.float64) for _ in range(inputs)]
+
+    def total(*xs):
+        out = xs[0] + 1
+        for x in xs[1:]:
+            out = out + x
+        return out
+
+    compiled = torch.compile(total, **inductor_kwargs({}, cpp_wrapper=True))
+    return median_ms(lambda: compiled(*tensors), repeats, 20)
+
+
+def per_step(times: list[float]) -> tuple[float, float]:
+    """Least-squares ``(per call, per step)`` ms of ``times`` at the plan lengths :data:`LENGTHS`."""
+    fit = torch.linalg.lstsq(torch.tensor([[1.0, t] for t in LENGTHS], dtype=torch.float64),
+                             torch.tensor(times, dtype=torch.float64).unsqueeze(-1)).solution.squeeze(-1)
+    return float(fit[0]), float(fit[1])
 
 
 def main() -> None:
@@ -76,6 +107,14 @@ def main() -> None:
                                                                      for n in names))
     print(f"{'local (e) / global (a)':<44}" + "".join(f"{results[n]['compiled'] / results[n]['sets']:>26.1f}"
                                                      for n in names))
+    print(f"{'(e) at T = ' + ' / '.join(map(str, LENGTHS)):<44}" + "".join(
+        f"{' / '.join(f'{ms:.3f}' for ms in results[n]['lengths']):>26}" for n in names))
+    fits = {n: per_step(results[n]["lengths"]) for n in names}
+    print(f"{'(e) fitted: per call + per step':<44}" + "".join(
+        f"{f'{fits[n][0]:.3f} + {fits[n][1]:.4f} T':>26}" for n in names))
+    floors = [call_floor(k, 200 if args.quick else 2000) for k in FLOOR_INPUTS]
+    print("a compiled call that only adds up k tensors (the compiler's floor per call): " + ", ".join(
+        f"k = {k}: {ms:.3f} ms" for k, ms in zip(FLOOR_INPUTS, floors)))
     for n in names:
         fastest = min(results[n]["local"], results[n]["compiled"])
         print(f"target one plan's sets <= {TARGET_MS} ms ({n}): global {_verdict(results[n]['sets'])}, "
